@@ -1,0 +1,150 @@
+"""Configuration: one frozen dataclass tree whose defaults are the paper's values.
+
+Thresholds carry their unit in their name (``merge_angle_deg``,
+``junction_dist_frac`` = a fraction of ``min(width, height)``). An ablation is
+a list of configs: switch relation types and factor types here, never in code.
+``dataclasses.replace`` (or :func:`with_overrides`) derives variants.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+
+@dataclass(frozen=True)
+class CaptureConfig:
+    """How frames are taken from a capture."""
+
+    every_k: int = 1  # take every k-th frame
+    max_frames: int | None = None  # cap the number of frames (after every_k)
+    scale: float = 1.0  # downscale factor applied to frames and intrinsics (0 < scale <= 1)
+
+
+@dataclass(frozen=True)
+class DetectConfig:
+    """Paper §3.1 'Line segment detection' (LSD + merging)."""
+
+    merge_angle_deg: float = 1.0  # merge segments whose angles differ less than this
+    merge_dist_frac: float = 0.05  # ... and whose closest endpoints are nearer than this * min(w, h)
+    merge_offset_px: float = 1.5  # ... and that are colinear within this perpendicular offset
+    min_length_frac: float = 0.05  # drop segments shorter than this * min(w, h) after merging
+    workers: int = 2  # worker processes for per-frame detection
+
+
+@dataclass(frozen=True)
+class ManhattanConfig:
+    """Paper §3.1 and supplement §1 (Manhattan frame extraction, Manhattan lines)."""
+
+    sphere_bins: int = 10242  # near-uniform bins on the Gaussian sphere
+    vote_band_rad: float = 0.03  # a bin gets a vote within this angle of the great circle
+    label_angle_deg: float = 85.0  # Manhattan segment: plane normal >= this from one direction...
+    # ... and < this from the other two (no segment compatible with two directions)
+    iterations: int = 3  # alternate extraction / labelling / rotation refinement
+
+
+@dataclass(frozen=True)
+class RotationConfig:
+    """Supplement §2 (rotation refinement, Eq. 1)."""
+
+    imu_weight: float = 0.1  # lambda: weight of the IMU relative-rotation term
+    neighbour_angle_deg: float = 10.0  # frames whose optical axes differ less than this are neighbours
+    max_neighbours: int = 8  # per frame, nearest in time first (keeps the graph sparse)
+    max_iterations: int = 20
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """Supplement §3 (line tracking)."""
+
+    axis_angle_deg: float = 2.0  # match frames whose optical axes are within this angle
+    match_dist_frac: float = 0.05  # smallest endpoint-to-line distance < this * min(w, h)
+    match_angle_deg: float = 1.0  # angle difference between matched segments
+    min_track_length: int = 2  # tracks with fewer segments are dropped
+
+
+@dataclass(frozen=True)
+class NormalsConfig:
+    """Paper §3.2: per-frame surface normals (model, orientation-map or oracle)."""
+
+    source: str = "model"  # "model" | "orientation-map" | "oracle"
+    model_path: str | None = None  # a user's own ONNX model (see README)
+    width: int = 256  # normal maps are computed at this width (aspect kept)
+
+
+@dataclass(frozen=True)
+class RelationsConfig:
+    """Paper §3.2 'Geometric relationship detection'."""
+
+    orthogonal: bool = True
+    parallel: bool = True
+    junction: bool = True
+    floor: bool = True
+    quad_normal_deg: float = 20.0  # mean normal in the quad within this of the expected direction
+    quad_deviation_deg: float = 5.0  # mean deviation of the quad's normals below this
+    junction_dist_frac: float = 0.1  # endpoints within this * min(w, h)
+    floor_normal_deg: float = 25.0  # floor pixels: normal within this of vertical
+    max_pair_dist_frac: float = 0.5  # candidate pairs for quad tests: midpoints within this * min(w, h)
+
+
+@dataclass(frozen=True)
+class LinearConfig:
+    """Paper §3.3 'Linear SfM formulation'."""
+
+    colinearity_weight: float = 1.0
+    coplanarity_weight: float = 1.0
+    floor_weight: float = 1.0
+    min_depth_m: float = 0.3  # lower bound on every depth (lambda > 0)
+    camera_height_m: float | None = None  # metric scale: floor this far below the mean camera height
+
+
+@dataclass(frozen=True)
+class GraphConfig:
+    """Paper §3.4 'Bundle adjustment' (three phases) in GTSAM."""
+
+    colinearity: bool = True
+    coplanarity_orthogonal: bool = True
+    coplanarity_parallel: bool = True
+    coplanarity_junction: bool = True
+    coplanarity_floor: bool = True
+    reprojection: bool = True
+    imu_prior: bool = True
+    relation_weight: float = 1e4  # colinearity / coplanarity weight relative to reprojection (paper)
+    reprojection_sigma_px: float = 1.0
+    imu_sigma_deg: float = 0.2  # relative-rotation prior between neighbouring frames
+    robust: str = "huber"  # "none" | "huber" | "cauchy"
+    robust_k: float = 1.345
+    phases: tuple[int, ...] = (1, 2, 3)  # 1: lines+translations, 2: +rotations, 3: +intrinsics
+    max_iterations: int = 30
+    reject_sigma: float = 5.0  # drop relations whose residual exceeds this many sigmas, then resolve
+    incremental_batch: int | None = None  # frames per batch for incremental solves
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole pipeline's settings; ``summary.json`` records the exact config used."""
+
+    capture: CaptureConfig = field(default_factory=CaptureConfig)
+    detect: DetectConfig = field(default_factory=DetectConfig)
+    manhattan: ManhattanConfig = field(default_factory=ManhattanConfig)
+    rotation: RotationConfig = field(default_factory=RotationConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    normals: NormalsConfig = field(default_factory=NormalsConfig)
+    relations: RelationsConfig = field(default_factory=RelationsConfig)
+    linear: LinearConfig = field(default_factory=LinearConfig)
+    graph: GraphConfig = field(default_factory=GraphConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def with_overrides(config: Config, **sections: dict[str, Any]) -> Config:
+    """Returns a copy of ``config`` with fields of its sections replaced.
+
+    ``with_overrides(cfg, relations={"floor": False}, graph={"robust": "none"})``
+    """
+    changes = {}
+    for name, values in sections.items():
+        sub = getattr(config, name)
+        changes[name] = dataclasses.replace(sub, **values)
+    return dataclasses.replace(config, **changes)

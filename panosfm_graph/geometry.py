@@ -1,0 +1,81 @@
+"""Small shared geometry helpers: quaternions (qw, qx, qy, qz, Hamilton), angles, rays.
+
+Vectorised over leading dimensions; built on ``scipy.spatial.transform``.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+
+def quat_wxyz_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Returns (..., 3, 3) rotation matrices from (..., 4) unit quaternions qw, qx, qy, qz."""
+    q = np.asarray(q, dtype=np.float64)
+    flat = q.reshape(-1, 4)
+    R = Rotation.from_quat(flat[:, [1, 2, 3, 0]]).as_matrix()
+    return R.reshape(q.shape[:-1] + (3, 3))
+
+
+def matrix_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
+    """Returns (..., 4) unit quaternions qw, qx, qy, qz (qw >= 0) from (..., 3, 3) rotations."""
+    R = np.asarray(R, dtype=np.float64)
+    flat = R.reshape(-1, 3, 3)
+    q = Rotation.from_matrix(flat).as_quat()[:, [3, 0, 1, 2]]
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
+    return q.reshape(R.shape[:-2] + (4,))
+
+
+def slerp_rotations(t_src: np.ndarray, R_src: np.ndarray, t_query: np.ndarray) -> np.ndarray:
+    """Returns (N, 3, 3) rotations slerped from samples ``R_src`` at times ``t_src`` to ``t_query``.
+
+    ``t_src`` must be strictly increasing and cover ``t_query``.
+    """
+    if len(t_src) == 1:
+        return np.repeat(R_src[:1], len(t_query), axis=0)
+    return Slerp(t_src, Rotation.from_matrix(R_src))(t_query).as_matrix()
+
+
+def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
+    """Returns the angle in degrees of ``R_a^T R_b`` for (..., 3, 3) stacks."""
+    M = np.einsum("...ji,...jk->...ik", R_a, R_b)
+    c = (np.trace(M, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def angle_between_deg(a: np.ndarray, b: np.ndarray, unsigned: bool = False) -> np.ndarray:
+    """Returns angles in degrees between vectors (last axis); ``unsigned`` treats v and -v alike."""
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    c = np.sum(a * b, axis=-1)
+    if unsigned:
+        c = np.abs(c)
+    return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def pixel_rays(K: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Returns (N, 3) unit camera-frame rays through pixels ``pts`` (N, 2)."""
+    pts = np.asarray(pts, dtype=np.float64)
+    x = (pts[:, 0] - K[0, 2]) / K[0, 0]
+    y = (pts[:, 1] - K[1, 2]) / K[1, 1]
+    d = np.stack([x, y, np.ones_like(x)], axis=1)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def interpretation_normals(K: np.ndarray, endpoints: np.ndarray) -> np.ndarray:
+    """Returns (N, 3) unit camera-frame normals of the segments' interpretation planes.
+
+    The plane through the camera centre and segment (x1, y1, x2, y2); supplement §1.
+    """
+    a = pixel_rays(K, endpoints[:, :2])
+    b = pixel_rays(K, endpoints[:, 2:])
+    n = np.cross(a, b)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+
+def project(K: np.ndarray, R_wc: np.ndarray, center: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Returns pixels (N, 2) and depths (N,) of world points ``X`` (N, 3) in one camera."""
+    Xc = (X - center) @ R_wc  # = R_wc^T (X - c) for each row
+    z = Xc[:, 2]
+    uv = Xc[:, :2] / z[:, None]
+    uv = uv * np.array([K[0, 0], K[1, 1]]) + np.array([K[0, 2], K[1, 2]])
+    return uv, z
