@@ -1,9 +1,244 @@
-"""The `panosfm` command line: thin layers over public Python functions."""
+"""The ``panosfm`` command line: each command is a thin layer over a public Python function.
+
+==========  ==============================================================
+command     Python function
+==========  ==============================================================
+run         ``panosfm_graph.pipeline.run_pipeline``
+demo        ``panosfm_graph.pipeline.run_demo``
+synth       ``panosfm_graph.synth.synthesize``
+inspect     ``panosfm_graph.capture.inspect_capture``
+eval        ``panosfm_graph.evaluate.evaluate_reconstruction``
+ablate      ``panosfm_graph.ablation.run_ablation``
+view        ``panosfm_graph.viz.view_recording``
+==========  ==============================================================
+
+Bad input ends with one line on stderr and exit status 2.
+"""
 from __future__ import annotations
 
+import argparse
+import ast
+import errno
+import json
+import logging
 import sys
+from pathlib import Path
+
+from .config import Config, with_overrides
+from .errors import InputError
+
+EXIT_BAD_INPUT = 2
+
+
+def _parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = text.lower().split("x")
+        return int(w), int(h)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must look like 960x540, got {text!r}") from None
+
+
+def _add_config_flags(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("capture and pipeline settings")
+    g.add_argument("--every", type=int, default=None, metavar="K", help="take every K-th frame")
+    g.add_argument("--max-frames", type=int, default=None, metavar="N", help="use at most N frames")
+    g.add_argument("--scale", type=float, default=None, help="downscale frames and intrinsics by this factor")
+    g.add_argument("--normals", choices=["model", "orientation-map", "oracle"], default=None,
+                   help="surface-normal source (default: model, falling back to orientation-map)")
+    g.add_argument("--normal-model", default=None, metavar="ONNX", help="run your own ONNX normal model")
+    g.add_argument("--camera-height", type=float, default=None, metavar="M",
+                   help="camera height above the floor in metres: makes the scale metric")
+    g.add_argument("--incremental", type=int, default=None, metavar="N",
+                   help="solve incrementally, adding N frames per batch")
+    g.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                   help="any Config field, e.g. --set relations.floor=False --set graph.robust=cauchy")
+
+
+def config_from_args(args: argparse.Namespace, base: Config | None = None) -> Config:
+    """Returns the Config described by the CLI flags (``--set`` last, so it wins)."""
+    cfg = base or Config()
+    sections: dict[str, dict] = {}
+
+    def put(section: str, field: str, value) -> None:
+        if value is not None:
+            sections.setdefault(section, {})[field] = value
+
+    put("capture", "every_k", getattr(args, "every", None))
+    put("capture", "max_frames", getattr(args, "max_frames", None))
+    put("capture", "scale", getattr(args, "scale", None))
+    put("normals", "source", getattr(args, "normals", None))
+    put("normals", "model_path", getattr(args, "normal_model", None))
+    put("linear", "camera_height_m", getattr(args, "camera_height", None))
+    put("graph", "incremental_batch", getattr(args, "incremental", None))
+    for item in getattr(args, "set", []) or []:
+        if "=" not in item or "." not in item.split("=", 1)[0]:
+            raise InputError(f"--set {item!r}: expected SECTION.FIELD=VALUE")
+        key, raw = item.split("=", 1)
+        section, field = key.split(".", 1)
+        if not hasattr(cfg, section) or not hasattr(getattr(cfg, section), field):
+            raise InputError(f"--set {item!r}: no setting {key!r} (see summary.json's config for the names)")
+        try:
+            value = ast.literal_eval(raw)
+        except (ValueError, SyntaxError):
+            value = raw
+        put(section, field, value)
+    try:
+        return with_overrides(cfg, **sections)
+    except TypeError as exc:
+        raise InputError(f"bad setting: {exc}") from None
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from .pipeline import run_pipeline
+
+    result = run_pipeline(args.capture, args.out, config_from_args(args), resume=args.resume,
+                          rerun=not args.no_rerun, spawn=args.spawn)
+    print(result.report())
+    return 0
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from .pipeline import run_demo
+
+    result = run_demo(args.out, scene=args.scene, n_frames=args.frames, size=args.size, seed=args.seed,
+                      config=config_from_args(args), spawn=args.spawn)
+    print(result.report())
+    return 0
+
+
+def _cmd_synth(args: argparse.Namespace) -> int:
+    from .synth import synthesize
+
+    path = synthesize(args.out, scene=args.scene, n_frames=args.frames, size=args.size, seed=args.seed,
+                      imu_drift_deg=args.imu_drift, turn_deg=args.turn, texture=args.texture,
+                      blur=args.blur, noise=args.noise, gt_maps=not args.no_gt_maps)
+    print(f"wrote {path}")
+    return 0
+
+
+def _cmd_inspect(args: argparse.Namespace) -> int:
+    from .capture import format_inspection, inspect_capture
+
+    info = inspect_capture(args.capture)
+    print(json.dumps(info, indent=2, default=str) if args.json else format_inspection(info))
+    return 0
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from .evaluate import evaluate_reconstruction, format_metrics
+
+    metrics = evaluate_reconstruction(args.capture, args.out)
+    text = format_metrics(metrics)
+    print(text)
+    if args.json:
+        Path(args.json).write_text(json.dumps(metrics, indent=2, default=float))
+    return 0
+
+
+def _cmd_ablate(args: argparse.Namespace) -> int:
+    from .ablation import run_ablation
+
+    table = run_ablation(args.capture, args.out, sets=args.sets, config=config_from_args(args))
+    print(table)
+    return 0
+
+
+def _cmd_view(args: argparse.Namespace) -> int:
+    from .viz import view_recording
+
+    path = Path(args.out)
+    view_recording(path / "recording.rrd" if path.is_dir() else path)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+
+    p = argparse.ArgumentParser(
+        prog="panosfm",
+        description="Panoramic structure from motion for indoor 360-degree spin videos (Ikehata et al.).")
+    p.add_argument("--version", action="version", version=f"panosfm {__version__}")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    r = sub.add_parser("run", help="reconstruct a capture directory")
+    r.add_argument("capture", help="capture directory (see capture-format.md)")
+    r.add_argument("out", help="output directory (replaced atomically when the run completes)")
+    r.add_argument("--resume", action="store_true", help="reuse every cached stage whose inputs did not change")
+    r.add_argument("--no-rerun", action="store_true", help="do not write recording.rrd")
+    r.add_argument("--spawn", action="store_true", help="open the rerun viewer live")
+    _add_config_flags(r)
+    r.set_defaults(func=_cmd_run)
+
+    d = sub.add_parser("demo", help="synthesise a small capture and reconstruct it")
+    d.add_argument("out", help="output directory (capture/ and reconstruction/ go inside)")
+    d.add_argument("--scene", default="living")
+    d.add_argument("--frames", type=int, default=120)
+    d.add_argument("--size", type=_parse_size, default=(640, 360))
+    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--spawn", action="store_true", help="open the rerun viewer live")
+    _add_config_flags(d)
+    d.set_defaults(func=_cmd_demo)
+
+    s = sub.add_parser("synth", help="write a synthetic capture with ground truth")
+    s.add_argument("out")
+    s.add_argument("--scene", default="living", help="living, bedroom, office, random, ...")
+    s.add_argument("--frames", type=int, default=300)
+    s.add_argument("--size", type=_parse_size, default=(960, 540), help="WxH, e.g. 960x540")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--imu-drift", type=float, default=3.0, metavar="DEG", help="IMU heading drift over the turn")
+    s.add_argument("--turn", type=float, default=380.0, metavar="DEG", help="how far the person turns")
+    s.add_argument("--texture", type=float, default=1.0, help="surface texture strength (0 = textureless)")
+    s.add_argument("--blur", type=float, default=0.0, metavar="PX", help="motion blur length")
+    s.add_argument("--noise", type=float, default=0.0, help="image noise sigma (grey levels)")
+    s.add_argument("--no-gt-maps", action="store_true", help="skip per-frame ground-truth normals and depth")
+    s.set_defaults(func=_cmd_synth)
+
+    i = sub.add_parser("inspect", help="describe a capture: frames, resolution, IMU coverage, ground truth")
+    i.add_argument("capture")
+    i.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    i.set_defaults(func=_cmd_inspect)
+
+    e = sub.add_parser("eval", help="score a reconstruction directory against the capture's ground truth")
+    e.add_argument("capture")
+    e.add_argument("out", help="reconstruction directory (sparse/, lines.ply)")
+    e.add_argument("--json", default=None, metavar="FILE", help="also write the metrics as JSON")
+    e.set_defaults(func=_cmd_eval)
+
+    a = sub.add_parser("ablate", help="run sets of relation/factor types and tabulate the metrics")
+    a.add_argument("capture")
+    a.add_argument("out")
+    a.add_argument("--sets", default="paper",
+                   help="'paper', 'factors', or a comma list of factor types, e.g. junction,floor")
+    _add_config_flags(a)
+    a.set_defaults(func=_cmd_ablate)
+
+    v = sub.add_parser("view", help="open a saved recording in the rerun viewer")
+    v.add_argument("out", help="an output directory or a .rrd file")
+    v.set_defaults(func=_cmd_view)
+    return p
 
 
 def main(argv: list[str] | None = None) -> int:
-    print("panosfm: under construction", file=sys.stderr)
-    return 0
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = [logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)]
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return args.func(args)
+    except InputError as exc:
+        print(f"panosfm: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except OSError as exc:
+        if exc.errno in (errno.ENOSPC, errno.EACCES, errno.EROFS, errno.ENOTDIR, errno.EEXIST, errno.EDQUOT):
+            where = f"{exc.filename}: " if exc.filename else ""
+            print(f"panosfm: error: {where}{exc.strerror}", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        raise
+    except KeyboardInterrupt:
+        print("panosfm: interrupted; the previous result (if any) is untouched", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,359 @@
+"""The pipeline: stages in order, each cached, the result written atomically.
+
+``run_pipeline(capture, out)`` runs (paper §3): line segment detection →
+Manhattan frame + rotation refinement → line tracking → surface normals →
+geometric relationship detection → linear SfM → bundle adjustment → export
+(COLMAP text model, ``lines.ply``, ``summary.json``, PNG views, rerun
+recording). Each stage's output is cached under ``<out>/cache/`` keyed by a
+hash of its inputs and its part of the :class:`Config`; ``resume=True`` reuses
+every stage whose key is unchanged, so a changed setting reruns only the
+stages it affects.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import platform
+import resource
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from . import __version__
+from .cache import StageCache, stable_hash
+from .config import Config
+from .data import (RELATION_NAMES, Capture, NormalMaps, Preprocessed, Relations, Segments, Solution,
+                   Tracks)
+from .errors import InputError
+from .progress import stage
+
+log = logging.getLogger("panosfm")
+
+STAGES = ("detect", "preprocess", "track", "normals", "relations", "linear", "bundle_adjust")
+
+
+@dataclass
+class RunResult:
+    """What a run produced: the output directory, its summary, and the in-memory results."""
+
+    out_dir: Path
+    summary: dict
+    capture: Capture | None = None
+    preprocessed: Preprocessed | None = None
+    tracks: Tracks | None = None
+    relations: Relations | None = None
+    linear: Solution | None = None
+    solution: Solution | None = None
+    batches: list[Solution] = field(default_factory=list)
+
+    def report(self) -> str:
+        """Returns a short human-readable account of the run."""
+        s = self.summary
+        lines = [f"panosfm: wrote {self.out_dir}"]
+        fr = s.get("frames", {})
+        if fr:
+            lines.append(f"  frames      {fr.get('registered', 0)}/{fr.get('total', 0)} registered "
+                         f"({100.0 * fr.get('registered_ratio', 0.0):.1f} %)")
+        if "segments" in s:
+            lines.append(f"  segments    {s['segments']['total']} ({s['segments']['manhattan']} Manhattan), "
+                         f"{s.get('tracks', 0)} tracks, {s.get('lines', 0)} 3D lines")
+        if "relations" in s:
+            lines.append("  relations   " + ", ".join(f"{k} {v}" for k, v in s["relations"].items()))
+        lines.append(f"  scale       {'metric' if s.get('metric') else 'arbitrary (no --camera-height)'}")
+        secs = s.get("seconds", {})
+        if secs:
+            lines.append("  seconds     " + ", ".join(f"{k} {v:.1f}" for k, v in secs.items()))
+        if s.get("peak_memory_mb"):
+            lines.append(f"  peak memory {s['peak_memory_mb']:.0f} MB")
+        return "\n".join(lines)
+
+
+def capture_identity(capture: Capture) -> str:
+    """Returns a hash identifying the capture's content as the pipeline sees it."""
+    cam = capture.camera
+    return stable_hash(str(capture.root.resolve()), list(capture.frame_names), capture.timestamps,
+                       cam.model, cam.width, cam.height, cam.params, capture.R_wc_imu)
+
+
+def peak_memory_mb() -> float:
+    """Returns this process's peak resident memory in MB (children included)."""
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return max(own, kids) / 1024.0
+
+
+def check_output_dir(out_dir: Path) -> None:
+    """Raises InputError when ``out_dir`` cannot hold a result (a file, or an unwritable parent)."""
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError("output path exists and is not a directory", out_dir)
+    parent = out_dir.resolve().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError("output directory's parent is not writable", parent)
+    if out_dir.exists() and not os.access(out_dir, os.W_OK | os.X_OK):
+        raise InputError("output directory is not writable", out_dir)
+
+
+def line_colors(pre: Preprocessed, tracks: Tracks) -> np.ndarray:
+    """Returns (T, 3) uint8 BGR: each track's mean segment colour (the quarter view's colours)."""
+    seg = np.flatnonzero(tracks.track_of >= 0)
+    t = tracks.track_of[seg]
+    sums = np.zeros((tracks.n, 3))
+    np.add.at(sums, t, pre.segments.colors[seg].astype(np.float64))
+    counts = np.maximum(np.bincount(t, minlength=tracks.n), 1)[:, None]
+    return np.clip(sums / counts, 0, 255).astype(np.uint8)
+
+
+def _cached(cache: StageCache, name: str, key: str, cls: type, compute: Callable[[], Any],
+            timings: dict[str, float], resumed: list[str]) -> Any:
+    obj = cache.load(name, key, cls)
+    if obj is not None:
+        log.info("%s: reused from cache", name)
+        resumed.append(name)
+        timings.setdefault(name, 0.0)
+        return obj
+    with stage(name, timings):
+        obj = compute()
+    cache.save(name, key, obj)
+    return obj
+
+
+def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config = Config(), *,
+                 resume: bool = False, rerun: bool = True, spawn: bool = False, views: bool = True,
+                 stop_after: str | None = None,
+                 on_batch: Callable[[int, Solution], None] | None = None) -> RunResult:
+    """Returns the reconstruction of a capture directory, written to ``out_dir``.
+
+    The output directory is replaced atomically when everything is written;
+    on an error the previous result stays as it was. ``stop_after`` names a
+    stage in :data:`STAGES` to stop after (what exists so far is still
+    exported). ``on_batch(i, solution)`` sees every incremental batch.
+    """
+    from .capture import load_capture
+    from .export import atomic_output_dir
+
+    t_start = time.perf_counter()
+    out_dir = Path(out_dir)
+    if stop_after is not None and stop_after not in STAGES:
+        raise InputError(f"unknown stage {stop_after!r}; stages are {', '.join(STAGES)}")
+    check_output_dir(out_dir)
+    timings: dict[str, float] = {}
+    resumed: list[str] = []
+    with stage("load", timings):
+        capture = load_capture(capture_path, config.capture)
+    cache = StageCache(out_dir / "cache", enabled=resume)
+    result = RunResult(out_dir=out_dir, summary={}, capture=capture)
+
+    def done(name: str) -> bool:
+        return stop_after == name
+
+    key = stable_hash(capture_identity(capture), config.capture, config.detect)
+    segments = _cached(cache, "detect", key, Segments, lambda: _detect(capture, config), timings, resumed)
+    if not done("detect"):
+        key = stable_hash(key, config.manhattan, config.rotation)
+        pre = _cached(cache, "preprocess", key, Preprocessed,
+                      lambda: _preprocess(capture, segments, config), timings, resumed)
+        result.preprocessed = pre
+        key_pre = key
+        if not done("preprocess"):
+            key = stable_hash(key_pre, config.tracking)
+            result.tracks = _cached(cache, "track", key, Tracks,
+                                    lambda: _track(capture, pre, config), timings, resumed)
+            key_tracks = key
+        if result.tracks is not None and not done("track"):
+            key_normals = stable_hash(key_pre, config.normals)
+            normals = _cached(cache, "normals", key_normals, NormalMaps,
+                              lambda: _normals(capture, pre, config), timings, resumed)
+            key = stable_hash(key_tracks, key_normals, config.relations)
+            result.relations = _cached(cache, "relations", key, Relations,
+                                       lambda: _relations(capture, pre, result.tracks, normals, config),
+                                       timings, resumed)
+            del normals
+        if result.relations is not None and not done("relations"):
+            key = stable_hash(key, config.linear)
+            result.linear = _cached(cache, "linear", key, Solution,
+                                    lambda: _linear(capture, pre, result.tracks, result.relations, config),
+                                    timings, resumed)
+            result.solution = result.linear
+        if result.linear is not None and not done("linear"):
+            key = stable_hash(key, config.graph)
+            result.solution = _cached(
+                cache, "bundle_adjust", key, Solution,
+                lambda: _bundle_adjust(pre, result, config, on_batch), timings, resumed)
+
+    with stage("export", timings):
+        with atomic_output_dir(out_dir, keep=("cache",)) as tmp:
+            summary = _summary(capture, segments, result, config, timings, resumed, t_start)
+            _export(tmp, capture, segments, result, summary, rerun=rerun, spawn=spawn, views=views)
+    result.summary = summary
+    return result
+
+
+# --- stage adapters: plain calls into the stage modules -------------------------------------------
+
+def _detect(capture: Capture, config: Config) -> Segments:
+    from .lines.detect import detect_segments
+
+    return detect_segments(capture, config.detect)
+
+
+def _preprocess(capture: Capture, segments: Segments, config: Config) -> Preprocessed:
+    from .lines import refine_manhattan_and_rotations
+
+    return refine_manhattan_and_rotations(segments, capture, config)
+
+
+def _track(capture: Capture, pre: Preprocessed, config: Config) -> Tracks:
+    from .lines.tracking import track_lines
+
+    return track_lines(pre.segments, pre.labels, capture.camera.K, pre.R_wc, config.tracking)
+
+
+def _normals(capture: Capture, pre: Preprocessed, config: Config) -> NormalMaps:
+    from .normals import estimate_normals
+
+    return estimate_normals(capture, pre, config.normals)
+
+
+def _relations(capture: Capture, pre: Preprocessed, tracks: Tracks, normals: NormalMaps,
+               config: Config) -> Relations:
+    from .relations import detect_relations
+
+    return detect_relations(pre, tracks, normals, capture.camera, config.relations)
+
+
+def _linear(capture: Capture, pre: Preprocessed, tracks: Tracks, relations: Relations,
+            config: Config) -> Solution:
+    from .linear import solve_linear
+
+    return solve_linear(pre, tracks, relations, capture.camera, config.linear)
+
+
+def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
+                   on_batch: Callable[[int, Solution], None] | None) -> Solution:
+    from .graph import bundle_adjust, bundle_adjust_incremental
+
+    if config.graph.incremental_batch:
+        final, batches = bundle_adjust_incremental(pre, result.tracks, result.relations, result.linear,
+                                                   config.graph, on_batch=on_batch)
+        result.batches = list(batches)
+        return final
+    return bundle_adjust(pre, result.tracks, result.relations, result.linear, config.graph)
+
+
+# --- outputs ----------------------------------------------------------------------------------------
+
+def _summary(capture: Capture, segments: Segments, result: RunResult, config: Config,
+             timings: dict[str, float], resumed: list[str], t_start: float) -> dict:
+    import gtsam
+    import cv2
+    import scipy
+
+    sol = result.solution
+    pre = result.preprocessed
+    n = capture.n_frames
+    registered = int(sol.registered.sum()) if sol is not None else 0
+    summary: dict[str, Any] = {
+        "panosfm_version": __version__,
+        "capture": str(Path(capture.root).resolve()),
+        "frames": {"total": n, "registered": registered, "registered_ratio": registered / max(n, 1),
+                   "unregistered": [capture.frame_names[i] for i in np.flatnonzero(~sol.registered)]
+                   if sol is not None else list(capture.frame_names)},
+        "segments": {"total": segments.n,
+                     "manhattan": int(np.sum(pre.labels >= 0)) if pre is not None else 0},
+        "tracks": result.tracks.n if result.tracks is not None else 0,
+        "lines": int(sol.lines.valid.sum()) if sol is not None else 0,
+        "relations": (result.relations.counts() if result.relations is not None
+                      else {k: 0 for k in RELATION_NAMES}),
+        "metric": bool(sol.metric) if sol is not None else False,
+        "scale": ("metric (camera height %.3f m)" % config.linear.camera_height_m
+                  if sol is not None and sol.metric else "arbitrary"),
+        "residuals": {"linear": result.linear.residuals if result.linear is not None else None,
+                      "bundle_adjust": (sol.residuals if sol is not None and sol is not result.linear
+                                        else None)},
+        "seconds": {k: round(v, 3) for k, v in timings.items()},
+        "resumed_stages": resumed,
+        "peak_memory_mb": round(peak_memory_mb(), 1),
+        "config": config.to_dict(),
+        "versions": {"python": platform.python_version(), "numpy": np.__version__,
+                     "gtsam": getattr(gtsam, "__version__", "?"), "opencv": cv2.__version__,
+                     "scipy": scipy.__version__},
+    }
+    if result.batches:
+        summary["incremental_batches"] = [int(b.registered.sum()) for b in result.batches]
+    summary["seconds"]["total"] = round(time.perf_counter() - t_start, 3)
+    return summary
+
+
+def _export(tmp: Path, capture: Capture, segments: Segments, result: RunResult, summary: dict, *,
+            rerun: bool, spawn: bool, views: bool) -> None:
+    from .export import export_reconstruction, write_summary
+
+    sol = result.solution
+    colors = (line_colors(result.preprocessed, result.tracks) if result.tracks is not None
+              else np.zeros((0, 3), np.uint8))
+    if sol is not None:
+        export_reconstruction(tmp, sol, capture.frame_names, colors, summary)
+        if views:
+            t0 = time.perf_counter()
+            from .views import render_views
+
+            title = Path(capture.root).name
+            render_views(tmp / "views", sol.lines, colors, sol.centers, sol.registered, sol.metric, title=title)
+            summary["seconds"]["views"] = round(time.perf_counter() - t0, 3)
+    if rerun and result.preprocessed is not None:
+        t0 = time.perf_counter()
+        from .viz import log_recording
+
+        log_recording(tmp / "recording.rrd", capture, result.preprocessed, result.tracks, result.relations,
+                      sol, spawn=spawn, batches=result.batches or None, line_colors=colors)
+        summary["seconds"]["rerun"] = round(time.perf_counter() - t0, 3)
+    summary["peak_memory_mb"] = round(peak_memory_mb(), 1)
+    write_summary(tmp / "summary.json", summary)
+
+
+def run_demo(out_dir: str | Path, *, scene: str = "living", n_frames: int = 120,
+             size: tuple[int, int] = (640, 360), seed: int = 0, config: Config = Config(),
+             spawn: bool = False) -> RunResult:
+    """Returns the result of synthesising a small capture into ``out/capture`` and reconstructing it.
+
+    The demo gives the camera height (metric scale) and scores the result
+    against the synthetic ground truth (``out/reconstruction/eval.json``).
+    """
+    from .evaluate import evaluate_reconstruction, format_metrics
+    from .synth import synthesize
+
+    out_dir = Path(out_dir)
+    check_output_dir(out_dir)
+    cap_dir = out_dir / "capture"
+    marker = out_dir / "capture.json"
+    wanted = {"scene": scene, "n_frames": n_frames, "size": list(size), "seed": seed}
+    import json
+
+    if not (cap_dir.exists() and marker.exists() and json.loads(marker.read_text()) == wanted):
+        if cap_dir.exists():
+            shutil.rmtree(cap_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        log.info("synthesising a %d-frame %dx%d capture of scene %r", n_frames, size[0], size[1], scene)
+        synthesize(cap_dir, scene=scene, n_frames=n_frames, size=size, seed=seed)
+        marker.write_text(json.dumps(wanted))
+    if config.linear.camera_height_m is None:
+        from .capture import load_capture
+
+        gt = load_capture(cap_dir, config.capture).ground_truth
+        floor_z = float(gt.scene.get("room_min", [0, 0, 0])[2]) if gt is not None else 0.0
+        height = float(np.mean(gt.centers[:, 2]) - floor_z) if gt is not None else 1.5
+        config = dataclasses.replace(config, linear=dataclasses.replace(config.linear, camera_height_m=height))
+    result = run_pipeline(cap_dir, out_dir / "reconstruction", config, spawn=spawn, resume=True)
+    metrics = evaluate_reconstruction(cap_dir, out_dir / "reconstruction")
+    (out_dir / "reconstruction" / "eval.json").write_text(json.dumps(metrics, indent=2, default=float))
+    result.summary["eval"] = metrics
+    log.info("\n%s", format_metrics(metrics))
+    return result
