@@ -96,6 +96,7 @@ class LinearConfig:
     floor_weight: float = 1.0
     min_depth_m: float = 0.3  # lower bound on every depth (lambda > 0)
     camera_height_m: float | None = None  # metric scale: floor this far below the mean camera height
+    zero_translation: bool = False  # the paper's baseline: all camera centres fixed at the origin
 
 
 @dataclass(frozen=True)

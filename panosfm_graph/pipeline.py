@@ -127,7 +127,7 @@ def _cached(cache: StageCache, name: str, key: str, cls: type, compute: Callable
 
 def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config = Config(), *,
                  resume: bool = False, rerun: bool = True, spawn: bool = False, views: bool = True,
-                 stop_after: str | None = None,
+                 stop_after: str | None = None, cache_dir: str | Path | None = None,
                  on_batch: Callable[[int, Solution], None] | None = None) -> RunResult:
     """Returns the reconstruction of a capture directory, written to ``out_dir``.
 
@@ -135,6 +135,8 @@ def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config =
     on an error the previous result stays as it was. ``stop_after`` names a
     stage in :data:`STAGES` to stop after (what exists so far is still
     exported). ``on_batch(i, solution)`` sees every incremental batch.
+    ``cache_dir`` (default ``<out>/cache``) may be shared between runs, as
+    ablations do.
     """
     from .capture import load_capture
     from .export import atomic_output_dir
@@ -148,7 +150,7 @@ def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config =
     resumed: list[str] = []
     with stage("load", timings):
         capture = load_capture(capture_path, config.capture)
-    cache = StageCache(out_dir / "cache", enabled=resume)
+    cache = StageCache(Path(cache_dir) if cache_dir is not None else out_dir / "cache", enabled=resume)
     result = RunResult(out_dir=out_dir, summary={}, capture=capture)
 
     def done(name: str) -> bool:

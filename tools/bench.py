@@ -1,0 +1,150 @@
+"""Whole-pipeline benchmark: panosfm (and the COLMAP peer, when pycolmap is installed) on synthetic scenes.
+
+    python tools/bench.py --scenes living,bedroom,office --frames 300 --size 960x540 --out bench/
+
+For each scene: synthesise a capture (cached in ``OUT/captures``), run
+panosfm with the camera height given, run the peer (``--peer`` incremental
+and/or global), score everything with ``evaluate_reconstruction``, and write
+``bench.json`` and ``bench.md`` (metrics, seconds per stage, peak memory).
+Each panosfm run is a fresh subprocess so peak memory is per run.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+
+
+def _run(cmd: list[str]) -> tuple[int, float, str]:
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    return proc.returncode, time.perf_counter() - t0, (proc.stderr or "")[-2000:]
+
+
+def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peers: list[str],
+          seed: int = 0) -> dict:
+    """Returns the benchmark record (also written to ``out/bench.json`` and ``out/bench.md``)."""
+    from panosfm_graph.capture import load_capture
+    from panosfm_graph.evaluate import evaluate_reconstruction
+    from panosfm_graph.synth import synthesize
+
+    out.mkdir(parents=True, exist_ok=True)
+    record = {"date": datetime.date.today().isoformat(), "machine": f"{platform.machine()}, {os.cpu_count()} cores",
+              "frames": frames, "size": list(size), "scenes": {}}
+    for k, scene in enumerate(scenes):
+        cap = out / "captures" / f"{scene}-{frames}-{size[0]}x{size[1]}-s{seed + k}"
+        if not (cap / "imu.csv").exists():
+            t0 = time.perf_counter()
+            synthesize(cap, scene=scene, n_frames=frames, size=size, seed=seed + k)
+            print(f"[{scene}] synthesised in {time.perf_counter() - t0:.1f} s", flush=True)
+        gt = load_capture(cap).ground_truth
+        height = float(gt.centers[:, 2].mean() - gt.scene.get("room_min", [0, 0, 0])[2])
+        entry = {}
+        rec = out / "runs" / scene / "panosfm"
+        code, secs, err = _run([sys.executable, "-m", "panosfm_graph", "run", str(cap), str(rec),
+                                "--camera-height", f"{height:.4f}", "--no-rerun"])
+        entry["panosfm"] = _score(rec, cap, code, secs, err, evaluate_reconstruction)
+        print(f"[{scene}] panosfm: {_line(entry['panosfm'])}", flush=True)
+        for mapper in peers:
+            pdir = out / "runs" / scene / f"colmap-{mapper}"
+            code, secs, err = _run([sys.executable, str(HERE / "peer_colmap.py"), str(cap), str(pdir),
+                                    "--mapper", mapper])
+            entry[f"colmap-{mapper}"] = _score(pdir, cap, code, secs, err, evaluate_reconstruction)
+            print(f"[{scene}] colmap-{mapper}: {_line(entry[f'colmap-{mapper}'])}", flush=True)
+        record["scenes"][scene] = entry
+    (out / "bench.json").write_text(json.dumps(record, indent=2, default=float))
+    md = format_bench(record)
+    (out / "bench.md").write_text(md + "\n")
+    print(md)
+    return record
+
+
+def _score(rec: Path, cap: Path, code: int, secs: float, err: str, evaluate) -> dict:
+    r = {"exit": code, "wall_s": round(secs, 2)}
+    if code != 0:
+        r["error"] = err.strip().splitlines()[-1] if err.strip() else "failed"
+        return r
+    summary = json.loads((rec / "summary.json").read_text())
+    r["seconds"] = summary.get("seconds", {})
+    r["peak_memory_mb"] = summary.get("peak_memory_mb")
+    r["metrics"] = evaluate(cap, rec)
+    return r
+
+
+def _m(r: dict, *path: str):
+    m = r.get("metrics")
+    for p in path:
+        if not isinstance(m, dict) or m.get(p) is None:
+            return None
+        m = m[p]
+    return m
+
+
+def _line(r: dict) -> str:
+    if "error" in r:
+        return f"FAILED ({r['error']})"
+    return (f"registered {100 * (_m(r, 'registered_ratio') or 0):.1f} %, "
+            f"corner reproj {_m(r, 'corners', 'mean_px')}, wall {r['wall_s']} s")
+
+
+def format_bench(record: dict) -> str:
+    """Returns the markdown table of a benchmark record."""
+    def f(v, spec):
+        return "n/a" if v is None else format(v, spec)
+
+    rows = [f"Benchmark {record['date']}, {record['machine']}, {record['frames']} frames at "
+            f"{record['size'][0]}x{record['size'][1]}", "",
+            "| scene | method | registered | centre err (% diam.) | rot. err med (deg) | corner reproj mean (px) "
+            "| line-surface med (m) | edges recovered | seconds | peak MB |",
+            "|" + "---|" * 10]
+    for scene, entry in record["scenes"].items():
+        for method, r in entry.items():
+            if "error" in r:
+                rows.append(f"| {scene} | {method} | failed: {r['error']} |" + " |" * 7)
+                continue
+            rows.append(
+                f"| {scene} | {method} | {f(100 * (_m(r, 'registered_ratio') or 0), '.1f')} % "
+                f"| {f(_m(r, 'centers', 'relative_error_pct'), '.2f')} "
+                f"| {f(_m(r, 'rotations', 'median_deg'), '.3f')} "
+                f"| {f(_m(r, 'corners', 'mean_px'), '.2f')} "
+                f"| {f(_m(r, 'lines', 'median_surface_distance_m'), '.3f')} "
+                f"| {f(_m(r, 'lines', 'recovered_ratio'), '.2f')} "
+                f"| {r['wall_s']:.1f} | {f(r.get('peak_memory_mb'), '.0f')} |")
+    return "\n".join(rows)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--scenes", default="living,bedroom,office")
+    p.add_argument("--frames", type=int, default=300)
+    p.add_argument("--size", default="960x540")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="bench")
+    p.add_argument("--peer", default="auto", help="'auto' (incremental if pycolmap is installed), 'none', "
+                   "or a comma list of incremental,global")
+    args = p.parse_args(argv)
+    w, h = (int(v) for v in args.size.lower().split("x"))
+    if args.peer == "auto":
+        try:
+            import pycolmap  # noqa: F401
+            peers = ["incremental"]
+        except ImportError:
+            peers = []
+    elif args.peer == "none":
+        peers = []
+    else:
+        peers = [s.strip() for s in args.peer.split(",") if s.strip()]
+    bench([s.strip() for s in args.scenes.split(",")], args.frames, (w, h), Path(args.out), peers, args.seed)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
