@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import os
 import platform
 import resource
 import shutil
@@ -34,6 +33,7 @@ from .progress import stage
 
 log = logging.getLogger("panosfm")
 
+CACHE_KEEP = ("cache",)  # entries of an old result carried into the new one
 STAGES = ("detect", "preprocess", "track", "normals", "relations", "linear", "bundle_adjust")
 
 
@@ -87,18 +87,11 @@ def peak_memory_mb() -> float:
     return max(own, kids) / 1024.0
 
 
-def check_output_dir(out_dir: Path) -> None:
-    """Raises InputError when ``out_dir`` cannot hold a result (a file, or an unwritable parent)."""
-    out_dir = Path(out_dir)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError("output path exists and is not a directory", out_dir)
-    parent = out_dir.resolve().parent
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
-        raise InputError("output directory's parent is not writable", parent)
-    if out_dir.exists() and not os.access(out_dir, os.W_OK | os.X_OK):
-        raise InputError("output directory is not writable", out_dir)
+def check_output_dir(out_dir: Path) -> Path:
+    """Returns the absolute ``out_dir`` after checking a result can be written there (InputError if not)."""
+    from .export import check_output_dir as check
+
+    return check(out_dir, keep=CACHE_KEEP)
 
 
 def line_colors(pre: Preprocessed, tracks: Tracks) -> np.ndarray:
@@ -191,7 +184,7 @@ def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config =
                 lambda: _bundle_adjust(pre, result, config, on_batch), timings, resumed)
 
     with stage("export", timings):
-        with atomic_output_dir(out_dir, keep=("cache",)) as tmp:
+        with atomic_output_dir(out_dir, keep=CACHE_KEEP) as tmp:
             summary = _summary(capture, segments, result, config, timings, resumed, t_start)
             _export(tmp, capture, segments, result, summary, rerun=rerun, spawn=spawn, views=views)
     result.summary = summary
@@ -302,7 +295,7 @@ def _export(tmp: Path, capture: Capture, segments: Segments, result: RunResult, 
     colors = (line_colors(result.preprocessed, result.tracks) if result.tracks is not None
               else np.zeros((0, 3), np.uint8))
     if sol is not None:
-        export_reconstruction(tmp, sol, capture.frame_names, colors, summary)
+        summary.update(export_reconstruction(tmp, sol, capture.frame_names, colors[:, ::-1], summary))
         if views:
             t0 = time.perf_counter()
             from .views import render_views
