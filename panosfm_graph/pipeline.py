@@ -206,9 +206,9 @@ def _preprocess(capture: Capture, segments: Segments, config: Config) -> Preproc
 
 
 def _track(capture: Capture, pre: Preprocessed, config: Config) -> Tracks:
-    from .lines.tracking import track_lines
+    from .lines import track_lines
 
-    return track_lines(pre.segments, pre.labels, capture.camera.K, pre.R_wc, config.tracking)
+    return track_lines(capture, pre, config)
 
 
 def _normals(capture: Capture, pre: Preprocessed, config: Config) -> NormalMaps:

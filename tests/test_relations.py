@@ -1,0 +1,147 @@
+"""Relation detection (paper §3.2): known small scenes, and wrong normals rejected."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from panosfm_graph.config import NormalsConfig, RelationsConfig
+from panosfm_graph.data import (FLOOR, JUNCTION, ORTHOGONAL, PARALLEL, Camera, Capture, GroundTruth, ManhattanFrame,
+                                NormalMaps, Preprocessed, Segments, Tracks)
+from panosfm_graph.normals import estimate_normals
+from panosfm_graph.relations import detect_relations, relations_true
+from panosfm_graph.synth.problem import make_problem
+from panosfm_graph.synth.render import raycast
+
+# ---------------------------------------------------------------- a hand-built frame with known answers
+# Camera looks along world +y, level: camera x = world x, camera y = world -z, camera z = world y.
+R_WC = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
+CAM = Camera("PINHOLE", 200, 100, np.array([100.0, 100.0, 99.5, 49.5]))
+
+
+def _frame(segs, labels, n_frames=1):
+    """Returns (Preprocessed, Tracks, NormalMaps): one track per segment, the same view repeated."""
+    ep = np.tile(np.asarray(segs, np.float32), (n_frames, 1))
+    S1 = len(segs)
+    frame = np.repeat(np.arange(n_frames, dtype=np.int32), S1)
+    seg = Segments(ep, frame, np.arange(0, (n_frames + 1) * S1, S1, dtype=np.int64), np.zeros((len(ep), 3), np.uint8))
+    lab = np.tile(np.asarray(labels, np.int8), n_frames)
+    R = np.repeat(R_WC[None], n_frames, axis=0)
+    pre = Preprocessed(seg, ManhattanFrame(np.eye(3)), lab, R, R)
+    tracks = Tracks(np.tile(np.arange(S1, dtype=np.int32), n_frames), np.asarray(labels, np.int8))
+    # normals (world): left half a wall facing -y (normal axis 1), right half facing -x (axis 0),
+    # bottom rows (below the horizon) the floor (+z)
+    h, w = 50, 100
+    n = np.zeros((h, w, 3), np.float32)
+    n[:, :50] = [0, -1, 0]
+    n[:, 50:] = [-1, 0, 0]
+    n[40:] = [0, 0, 1]
+    maps = np.repeat(n[None], n_frames, axis=0).astype(np.float16)
+    return pre, tracks, NormalMaps(maps, np.ones((n_frames, h, w), bool), 0.5, "test")
+
+
+SEGS = [
+    (10, 20, 80, 20),   # 0: x line on the left wall (label 0)
+    (20, 10, 20, 60),   # 1: z line on the left wall (label 2)
+    (70, 10, 70, 60),   # 2: z line on the left wall (label 2)
+    (130, 15, 130, 60),  # 3: z line on the right wall (label 2)
+    (40, 90, 90, 90),   # 4: x line on the floor (label 0)
+    (160, 30, 195, 30),  # 5: y line on the right wall (label 1)
+]
+LABELS = [0, 2, 2, 2, 0, 1]
+
+
+def _rows(rel, kind):
+    m = rel.kind == kind
+    return set(zip(rel.track_a[m].tolist(), rel.track_b[m].tolist(), rel.normal_axis[m].tolist()))
+
+
+def test_known_frame_relations():
+    pre, tracks, nm = _frame(SEGS, LABELS, n_frames=2)
+    rel = detect_relations(pre, tracks, nm, CAM, RelationsConfig())
+    ortho, par = _rows(rel, ORTHOGONAL), _rows(rel, PARALLEL)
+    assert (0, 1, 1) in ortho and (0, 2, 1) in ortho  # x and z lines on the y-facing wall
+    assert (1, 2, 0) not in par and (1, 2, 1) in par  # parallel z lines: plane normal y, not x
+    assert (2, 3, 1) not in par and (2, 3, 0) not in par  # quad straddles the corner: mixed normals
+    assert (3, 5, 0) in ortho  # z and y lines on the x-facing wall: plane normal x
+    assert not any(a in (0, 1, 2) and b in (3, 5) for a, b, _ in ortho)  # never across the corner
+    assert _rows(rel, FLOOR) == {(4, -1, 2)}
+    # junctions: endpoints within 0.1 * 100 px: segment 0 (10,20) and segment 1 (20,10): 14 px -> no;
+    # segment 0's end (80,20) and segment 2 (70,10): 14 px -> no
+    assert _rows(rel, JUNCTION) == set()
+    assert set(rel.support.tolist()) == {2}  # each relation seen in both frames, counted once per frame
+    assert np.all(rel.track_a[rel.kind != FLOOR] < rel.track_b[rel.kind != FLOOR])
+
+
+def test_junction_threshold():
+    segs = [(20, 20, 80, 20), (84, 24, 84, 70), (20, 30, 20, 90)]  # 0-1 ends 5.7 px apart; 0-2 10 px
+    pre, tracks, nm = _frame(segs, [0, 2, 1])
+    rel = detect_relations(pre, tracks, nm, CAM, RelationsConfig(junction_dist_frac=0.08))
+    assert _rows(rel, JUNCTION) == {(0, 1, 1)}
+    rel = detect_relations(pre, tracks, nm, CAM, RelationsConfig(junction_dist_frac=0.12))
+    assert _rows(rel, JUNCTION) == {(0, 1, 1), (0, 2, 2)}
+
+
+def test_switches_turn_relation_types_off():
+    pre, tracks, nm = _frame(SEGS, LABELS)
+    rel = detect_relations(pre, tracks, nm, CAM, RelationsConfig(orthogonal=False, floor=False))
+    assert not np.any(rel.kind == ORTHOGONAL) and not np.any(rel.kind == FLOOR)
+    assert np.any(rel.kind == PARALLEL)
+
+
+def test_untracked_segments_are_ignored():
+    pre, tracks, nm = _frame(SEGS, LABELS)
+    tr = Tracks(np.where(np.arange(len(SEGS)) == 0, -1, tracks.track_of).astype(np.int32), tracks.axis)
+    rel = detect_relations(pre, tr, nm, CAM, RelationsConfig())
+    assert 0 not in set(rel.track_a.tolist()) | set(rel.track_b.tolist())
+
+
+# ---------------------------------------------------------------- a ray-cast room along a spin
+
+
+@pytest.fixture(scope="module")
+def spin():
+    P = make_problem("living", n_frames=16, size=(320, 180), seed=0)
+    cam, sc = P.camera, P.scene
+    hits = lambda i: raycast(sc, cam.K, P.gt_R_wc[i], P.gt_centers[i], (cam.width, cam.height))  # noqa: E731
+    gt = GroundTruth(R_wc=P.gt_R_wc, centers=P.gt_centers, lines=np.zeros((0, 6)), line_labels=np.zeros(0, np.int8),
+                     scene={}, normals=lambda i: hits(i)["normal_cam"], depth=lambda i: hits(i)["depth"],
+                     has_normals=True, has_depth=True)
+    cap = Capture(None, cam, tuple(map(str, range(P.n_frames))), np.arange(P.n_frames) / 30.0,
+                  P.preprocessed.R_wc_imu, gt, lambda i: None)
+    nm = estimate_normals(cap, P.preprocessed, NormalsConfig(source="oracle", width=160))
+    L = np.concatenate([sc.to_room(P.gt_track_lines[:, :3]), sc.to_room(P.gt_track_lines[:, 3:])], axis=1)
+    return P, nm, L
+
+
+def test_oracle_relations_on_a_spin(spin):
+    P, nm, L = spin
+    rel = detect_relations(P.preprocessed, P.tracks, nm, P.camera, RelationsConfig())
+    ok = relations_true(rel, L, float(P.scene.room_min[2]), tol_m=0.05)
+    for kind in (ORTHOGONAL, PARALLEL):
+        m = rel.kind == kind
+        assert m.sum() >= 10
+        # measured 0.90-0.95 (errors: thin fixtures 1-5 cm off the wall; occluding edges)
+        assert ok[m].mean() >= 0.8, (kind, ok[m].mean())
+    # every generator junction (shared GT endpoint) is found
+    gm = P.relations.kind == JUNCTION
+    truth = set(zip(P.relations.track_a[gm].tolist(), P.relations.track_b[gm].tolist(),
+                    P.relations.normal_axis[gm].tolist()))
+    assert len(truth & _rows(rel, JUNCTION)) >= 0.9 * len(truth)
+    assert np.all(rel.track_a < P.tracks.n) and np.all(rel.track_b < P.tracks.n)
+
+
+@pytest.mark.parametrize("const", [(1.0, 1.0, 1.0), "random"])
+def test_wrong_normals_reject_quad_coplanarities(spin, const):
+    """Constant off-axis normals or random normals: no orthogonal / parallel coplanarity is accepted."""
+    P, nm, L = spin
+    if const == "random":
+        n = np.random.default_rng(0).normal(size=nm.maps.shape)
+    else:
+        n = np.broadcast_to(np.asarray(const, float) @ P.preprocessed.manhattan.directions, nm.maps.shape)
+    n = (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float16)
+    bad = NormalMaps(n, np.ones_like(nm.valid), nm.scale, "wrong")
+    rel = detect_relations(P.preprocessed, P.tracks, bad, P.camera, RelationsConfig())
+    assert np.sum((rel.kind == ORTHOGONAL) | (rel.kind == PARALLEL)) == 0
+    assert np.sum(rel.kind == FLOOR) == 0
+    good = detect_relations(P.preprocessed, P.tracks, nm, P.camera, RelationsConfig())
+    assert np.sum(good.kind == ORTHOGONAL) > 10  # the same pairs are accepted with the right normals
