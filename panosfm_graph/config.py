@@ -41,6 +41,8 @@ class ManhattanConfig:
     label_angle_deg: float = 85.0  # Manhattan segment: plane normal >= this from one direction...
     # ... and < this from the other two (no segment compatible with two directions)
     iterations: int = 3  # alternate extraction / labelling / rotation refinement
+    vertical_search_deg: float = 10.0  # the vertical peak is searched this close to gravity
+    min_segments: int = 20  # fewer (Manhattan) segments than this: TooFewLinesError
 
 
 @dataclass(frozen=True)
@@ -51,6 +53,7 @@ class RotationConfig:
     neighbour_angle_deg: float = 10.0  # frames whose optical axes differ less than this are neighbours
     max_neighbours: int = 8  # per frame, nearest in time first (keeps the graph sparse)
     max_iterations: int = 20
+    huber_deg: float = 0.5  # Huber threshold on the Eq. 1 data residual (0: plain least squares as in the paper)
 
 
 @dataclass(frozen=True)
@@ -97,6 +100,9 @@ class LinearConfig:
     min_depth_m: float = 0.3  # lower bound on every depth (lambda > 0)
     camera_height_m: float | None = None  # metric scale: floor this far below the mean camera height
     zero_translation: bool = False  # the paper's baseline: all camera centres fixed at the origin
+    min_view_eig: float = 0.02  # register a frame only if its lines' interpretation-plane normals span 3D this well
+    robust_iterations: int = 0  # IRLS rounds (Cauchy) on coplanarity rows against wrong relations; 0 = paper (plain LS)
+    robust_k: float = 2.385  # Cauchy constant, in robust sigmas (1.4826 * median |residual|)
 
 
 @dataclass(frozen=True)

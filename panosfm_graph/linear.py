@@ -1,0 +1,498 @@
+"""Linear SfM (paper §3.3): camera translations and line depths from colinearity and coplanarity.
+
+Unknowns (paper §3.3 "Model"): the camera centres ``T_i`` and one depth ``lambda`` per line
+observation -- the segment mid-point ``P = T_i + lambda D`` along its unit world viewing ray
+``D = R_wc K^-1 x~`` (normalised). Rotations (``pre.R_wc``) and the Manhattan directions are known.
+
+Formulation choices (documented deviations are marked *):
+
+* Coordinates are taken in the Manhattan frame: ``tau_i[k] = T_i . N_k`` (``N_k`` = the
+  Manhattan directions). A line of axis ``a`` is fixed by its two coordinates ``u[k] = P . N_k``,
+  ``k != a`` (its position in the plane orthogonal to its direction).
+* Colinearity (paper: ``(P_i - P_j) . N = 0`` for every pair of a track's observations) is
+  written* with the per-track offsets ``u`` as extra unknowns: ``(T_i + lambda D) . N_k - u[k] = 0``
+  for each observation and both ``k != a``. Minimising over ``u`` gives exactly the paper's
+  all-pairs sum divided by the track length, with 2 rows per observation instead of O(n^2).
+* A coplanarity with normal axis ``k`` (orthogonal, parallel, junction) is ``(P_l - P_m) . N_k = 0``;
+  since ``N_k`` is orthogonal to both lines this equals ``u_l[k] - u_m[k] = 0`` for every choice
+  of observations once colinearity holds, so it is written on the offsets. Relations whose normal
+  axis is one of the tracks' own axes are impossible and skipped.
+* Floor coplanarity: every floor track's vertical offset equals one floor height ``h``.
+* The depths are eliminated per observation (each appears only in its two colinearity rows),
+  leaving a small sparse least-squares problem in ``tau, u`` that is solved directly (sparse
+  normal equations, Jacobi-scaled); the depths follow by back-substitution. The bound
+  ``lambda >= min_depth`` is enforced by a primal active set: violating depths are pinned at the
+  bound (their two rows kept explicitly) and released when their multiplier changes sign.
+* Gauge: the first registered camera's centre is the origin. Scale, in this order:
+  floor relations and ``camera_height_m`` -> the floor lies ``camera_height_m`` below the mean
+  camera height (metric); floor relations only -> mean camera-to-floor distance = 1; otherwise
+  the mean depth = 1 (solved with one depth fixed at 1, then rescaled). ``min_depth_m`` is applied
+  during the solve (with the floor ``camera_height_m`` -- or 1 -- below the FIRST camera, or the
+  reference depth = 1) and is thus in approximately those units.
+* Registration: a frame is solved only if (1) it lies in the largest group of frames that are
+  connected, separately along each Manhattan axis ``k``, through observations of tracks that carry
+  a ``k`` coordinate, relations of normal ``k`` and (``k`` vertical) the floor -- a frame linked
+  to the rest only through vertical lines cannot have its height fixed -- where a track links frames
+  only if it adds information (observations + relations >= 3); and (2) the interpretation-plane
+  normals of its informative observations span 3D (smallest eigenvalue of their scatter >=
+  ``min_view_eig``): each observation of a known line constrains the centre to one plane.
+  (1) and (2) are iterated to a fixed point. Other frames get NaN centres and ``registered=False``.
+"""
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+from scipy.sparse.linalg import spsolve
+
+from .config import LinearConfig
+from .data import (
+    FLOOR,
+    JUNCTION,
+    ORTHOGONAL,
+    PARALLEL,
+    RELATION_NAMES,
+    Camera,
+    LineModel,
+    Preprocessed,
+    Relations,
+    Solution,
+    Tracks,
+)
+from .geometry import pixel_rays
+
+log = logging.getLogger("panosfm.linear")
+
+_OTHER = np.array([[1, 2], [0, 2], [0, 1]])  # the two Manhattan axes orthogonal to axis a
+_VERTICAL = 2
+
+
+def observation_rays(pre: Preprocessed, camera: Camera, segments: np.ndarray | None = None,
+                     which: str = "mid") -> np.ndarray:
+    """Returns (N, 3) unit WORLD viewing rays ``D = R_wc K^-1 x~`` of segment mid-points (or end points).
+
+    ``which`` is ``"mid"``, ``"start"`` (x1, y1) or ``"end"`` (x2, y2). Paper §3.3, "Model".
+    """
+    seg = pre.segments
+    idx = np.arange(seg.n) if segments is None else np.asarray(segments)
+    ep = seg.endpoints[idx].astype(np.float64)
+    pts = {"mid": 0.5 * (ep[:, :2] + ep[:, 2:]), "start": ep[:, :2], "end": ep[:, 2:]}[which]
+    d_cam = pixel_rays(camera.K, pts)
+    return np.einsum("nij,nj->ni", pre.R_wc[seg.frame[idx]], d_cam)
+
+
+def _valid_relations(relations: Relations, axis: np.ndarray, config: LinearConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Returns (pair relation mask, floor relation mask) of relations the linear solve can use."""
+    T = len(axis)
+    kind = relations.kind
+    a, b, k = relations.track_a, relations.track_b, relations.normal_axis.astype(int)
+    in_a = (a >= 0) & (a < T)
+    in_b = (b >= 0) & (b < T)
+    ax_a = np.where(in_a, axis[np.clip(a, 0, max(T - 1, 0))], -1) if T else np.full(len(a), -1)
+    ax_b = np.where(in_b, axis[np.clip(b, 0, max(T - 1, 0))], -1) if T else np.full(len(a), -1)
+    pair = (np.isin(kind, (ORTHOGONAL, PARALLEL, JUNCTION)) & in_a & in_b & (a != b)
+            & (k != ax_a) & (k != ax_b) & (k >= 0) & (k < 3) & (config.coplanarity_weight > 0))
+    floor = (kind == FLOOR) & in_a & (ax_a != _VERTICAL) & (ax_a >= 0) & (config.floor_weight > 0)
+    n_bad = int(np.sum(np.isin(kind, (ORTHOGONAL, PARALLEL, JUNCTION)) & ~pair)) if config.coplanarity_weight > 0 else 0
+    if n_bad:
+        log.warning("linear: skipped %d coplanarities whose normal axis is a line's own axis", n_bad)
+    return pair, floor
+
+
+def register_frames(n_frames: int, obs_frame: np.ndarray, obs_track: np.ndarray, obs_normal: np.ndarray,
+                    track_axis: np.ndarray, rel_a: np.ndarray, rel_b: np.ndarray, rel_axis: np.ndarray,
+                    floor_track: np.ndarray, min_view_eig: float, max_iterations: int = 10) -> np.ndarray:
+    """Returns (F,) bool: frames whose translation the linear solve can determine (paper §3.3).
+
+    ``obs_*`` describe the tracked observations (frame, track, unit interpretation-plane normal
+    ``N_axis x D``); ``rel_*`` the usable pair coplanarities (tracks, normal axis);
+    ``floor_track`` the tracks on the floor. See the module docstring for the two criteria.
+    """
+    F, T = n_frames, len(track_axis)
+    kept = np.zeros(F, bool)
+    kept[obs_frame] = True
+    for _ in range(max_iterations):
+        o = kept[obs_frame]
+        n_obs = np.bincount(obs_track[o], minlength=T)
+        live = n_obs > 0
+        ra = live[rel_a] & live[rel_b]
+        n_rel = (np.bincount(rel_a[ra], minlength=T) + np.bincount(rel_b[ra], minlength=T)
+                 + np.bincount(floor_track[live[floor_track]], minlength=T))
+        informative = (n_obs + n_rel >= 3) & live
+        oi = o & informative[obs_track]
+        labels = []
+        for k in range(3):
+            e_obs = oi & (track_axis[obs_track] != k)
+            rows = [obs_frame[e_obs], F + obs_track[e_obs]]
+            cols = [F + obs_track[e_obs], obs_frame[e_obs]]
+            er = ra & (rel_axis == k) & informative[rel_a] & informative[rel_b]
+            rows += [F + rel_a[er]]
+            cols += [F + rel_b[er]]
+            if k == _VERTICAL:
+                fl = floor_track[live[floor_track] & informative[floor_track]]
+                rows += [F + fl]
+                cols += [np.full(len(fl), F + T)]
+            r = np.concatenate(rows)
+            c = np.concatenate(cols)
+            g = sp.coo_matrix((np.ones(len(r)), (r, c)), shape=(F + T + 1, F + T + 1))
+            labels.append(connected_components(g, directed=False)[1][:F])
+        lab = np.stack(labels, axis=1)
+        cls_id, inv = np.unique(lab[kept], axis=0, return_inverse=True)
+        inv = np.ravel(inv)
+        if len(cls_id) == 0:
+            return np.zeros(F, bool)
+        counts = np.bincount(inv)
+        best = cls_id[np.argmax(counts)]  # np.argmax: first (earliest-labelled) class on ties
+        in_cls = np.all(lab == best, axis=1) & kept
+        # (2) the interpretation planes of the frame's informative observations span 3D
+        scatter = np.zeros((F, 3, 3))
+        np.add.at(scatter, obs_frame[oi], obs_normal[oi, :, None] * obs_normal[oi, None, :])
+        eig_min = np.linalg.eigvalsh(scatter)[:, 0]
+        new = in_cls & (eig_min >= min_view_eig)
+        if np.array_equal(new, kept):
+            break
+        kept = new
+    return kept
+
+
+def _group_median(values: np.ndarray, groups: np.ndarray, n_groups: int) -> np.ndarray:
+    """Returns (G,) the median of ``values`` per group id (NaN for empty groups), vectorised."""
+    out = np.full(n_groups, np.nan)
+    if len(values) == 0:
+        return out
+    order = np.lexsort((values, groups))
+    v, g = values[order], groups[order]
+    counts = np.bincount(g, minlength=n_groups)
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    has = counts > 0
+    lo = start[has] + (counts[has] - 1) // 2
+    hi = start[has] + counts[has] // 2
+    out[has] = 0.5 * (v[lo] + v[hi])
+    return out
+
+
+def _solve_normal(A: sp.csr_matrix, b: np.ndarray) -> np.ndarray:
+    """Returns argmin |A x - b| by Jacobi-scaled sparse normal equations (a tiny ridge guards empty columns)."""
+    N = (A.T @ A).tocsc()
+    diag = N.diagonal()
+    s = 1.0 / np.sqrt(np.where(diag > 0, diag, 1.0))
+    S = sp.diags(s)
+    Ns = (S @ N @ S + 1e-12 * sp.identity(N.shape[0])).tocsc()
+    y = spsolve(Ns, s * (A.T @ b))
+    return s * np.atleast_1d(y)
+
+
+def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera: Camera,
+                 config: LinearConfig = LinearConfig()) -> Solution:
+    """Returns the linear SfM solution (paper §3.3): camera centres and one 3D line per track.
+
+    Solves colinearity + coplanarity + floor constraints for the translations and the line depths
+    (``lambda >= min_depth_m``) of the registered frames (module docstring: formulation, gauge,
+    scale, registration). Lines: direction = the track's Manhattan direction, position = the median
+    of its observations' points (orthogonal to the direction), extent = the closest points on the
+    line to its segments' end-point rays. ``R_wc`` is ``pre.R_wc`` passed through.
+    """
+    t_start = time.perf_counter()
+    seg = pre.segments
+    F = len(pre.R_wc)
+    M = np.asarray(pre.manhattan.directions, dtype=np.float64)  # rows N_0, N_1, N_2
+    T = tracks.n
+    axis = tracks.axis.astype(int)
+    w_c, w_p, w_f = config.colinearity_weight, config.coplanarity_weight, config.floor_weight
+
+    obs = np.flatnonzero(tracks.track_of >= 0)
+    obs = obs[(tracks.track_of[obs] < T)]
+    o_frame = seg.frame[obs].astype(int)
+    o_track = tracks.track_of[obs].astype(int)
+    o_axis = axis[o_track]
+    D = observation_rays(pre, camera, obs)  # (O, 3) world
+    Dm = D @ M.T  # ray coordinates along the Manhattan axes
+    k1 = _OTHER[o_axis, 0]
+    k2 = _OTHER[o_axis, 1]
+    O = np.arange(len(obs))
+    d1, d2 = Dm[O, k1], Dm[O, k2]
+    dn = np.hypot(d1, d2)
+    ok = dn > 1e-6  # a ray along its own line fixes nothing
+    obs, o_frame, o_track, o_axis, D, Dm, k1, k2, d1, d2, dn = (
+        x[ok] for x in (obs, o_frame, o_track, o_axis, D, Dm, k1, k2, d1, d2, dn))
+
+    pair, floor = _valid_relations(relations, axis, config)
+    r_a = relations.track_a[pair].astype(int)
+    r_b = relations.track_b[pair].astype(int)
+    r_k = relations.normal_axis[pair].astype(int)
+    r_kind = relations.kind[pair].astype(int)
+    f_t = relations.track_a[floor].astype(int)
+
+    n_int = np.cross(M[o_axis], D)
+    n_int /= np.maximum(np.linalg.norm(n_int, axis=1, keepdims=True), 1e-12)
+    if config.zero_translation:
+        registered = np.zeros(F, bool)
+        registered[o_frame] = True
+    else:
+        registered = register_frames(F, o_frame, o_track, n_int, axis, r_a, r_b, r_k, f_t, config.min_view_eig)
+
+    # --- the system over the registered frames ---------------------------------------------
+    o_sel = registered[o_frame]
+    n_obs = np.bincount(o_track[o_sel], minlength=T)
+    live = n_obs > 0
+    rs = live[r_a] & live[r_b]
+    fs = live[f_t]
+    n_rel = np.bincount(r_a[rs], minlength=T) + np.bincount(r_b[rs], minlength=T) + np.bincount(f_t[fs], minlength=T)
+    in_sys = live & (n_obs + n_rel >= 2)
+    rs &= in_sys[r_a] & in_sys[r_b]
+    fs &= in_sys[f_t]
+    o_sel &= in_sys[o_track]
+    frames = np.flatnonzero(registered)
+    Fk = len(frames)
+    frame_col = np.full(F, -1)
+    frame_col[frames] = np.arange(Fk)
+    tq = np.flatnonzero(in_sys)
+    track_col = np.full(T, -1)
+    track_col[tq] = np.arange(len(tq))
+    n_u = 2 * len(tq)
+    col_h = 3 * Fk + n_u
+    n_cols = col_h + 1
+
+    def tau_col(frame, k):
+        return 3 * frame_col[frame] + k
+
+    def u_col(track, k):
+        slot = (k == _OTHER[axis[track], 1]).astype(int)
+        return 3 * Fk + 2 * track_col[track] + slot
+
+    use_floor = bool(np.any(fs))
+    H = config.camera_height_m
+    if use_floor:
+        h0 = -(H if H is not None else 1.0)
+        scale_mode = "metric" if H is not None else "camera_to_floor"
+    else:
+        h0 = 0.0
+        scale_mode = "mean_depth"
+        if H is not None:
+            log.warning("linear: camera_height_m given but no floor relations among registered frames; "
+                        "scale is arbitrary (mean depth = 1)")
+    ob = np.flatnonzero(o_sel)
+    fixed_val = np.full(n_cols, np.nan)
+    fixed_val[col_h] = h0
+    if Fk:
+        if config.zero_translation:
+            fixed_val[:3 * Fk] = 0.0
+        else:
+            fixed_val[tau_col(frames[0], np.arange(3))] = 0.0
+    ref_obs = -1
+    if not use_floor and len(ob):
+        # fix one depth: an observation in the first registered frame of its most observed track
+        cand = ob[o_frame[ob] == o_frame[ob].min()]
+        ref_obs = int(cand[np.argmax(n_obs[o_track[cand]])])
+        t0 = o_track[ref_obs]
+        tau0 = np.zeros(3)  # the reference frame's centre is the origin
+        for kk, dd in ((k1[ref_obs], d1[ref_obs]), (k2[ref_obs], d2[ref_obs])):
+            fixed_val[u_col(np.array([t0]), np.array([kk]))[0]] = tau0[kk] + 1.0 * dd
+    fixed = ~np.isnan(fixed_val)
+    free_idx = np.flatnonzero(~fixed)
+
+    # relation rows (coplanarity, floor): w * (x[rel_c0] - x[rel_c1]) = 0, reweighted by IRLS
+    rel_c0 = np.concatenate([u_col(r_a[rs], r_k[rs]), u_col(f_t[fs], np.full(int(fs.sum()), _VERTICAL))])
+    rel_c1 = np.concatenate([u_col(r_b[rs], r_k[rs]), np.full(int(fs.sum()), col_h)])
+    rel_w = np.concatenate([np.full(int(rs.sum()), w_p), np.full(int(fs.sum()), w_f)])
+    n_const_rows = len(rel_c0)
+    n_pair_rows = int(rs.sum())
+
+    o_f, o_t = o_frame[ob], o_track[ob]
+    c_t1, c_t2 = tau_col(o_f, k1[ob]), tau_col(o_f, k2[ob])
+    c_u1, c_u2 = u_col(o_t, k1[ob]), u_col(o_t, k2[ob])
+    e1, e2, en = d1[ob], d2[ob], dn[ob]
+    not_ref = ob != ref_obs
+    lam_min = config.min_depth_m
+
+    def assemble(pinned, robust_w):
+        """Returns (A_free, b) for the depths pinned at the bound and the relations' IRLS weights."""
+        free_o = ~pinned & not_ref
+        nf, npn = int(free_o.sum()), int(pinned.sum())
+        r0 = n_const_rows
+        rr = r0 + np.arange(nf)
+        c1, c2 = e2[free_o] / en[free_o], e1[free_o] / en[free_o]
+        rc = np.arange(r0)
+        wr = rel_w * np.sqrt(robust_w)
+        rows = [rc, rc] + [rr] * 4
+        cols = [rel_c0, rel_c1] + [c_t1[free_o], c_u1[free_o], c_t2[free_o], c_u2[free_o]]
+        vals = [wr, -wr] + [w_c * c1, -w_c * c1, -w_c * c2, w_c * c2]
+        rhs = [np.zeros(r0), np.zeros(nf)]
+        rp = r0 + nf + np.arange(npn)
+        rows += [rp, rp, rp + npn, rp + npn]
+        cols += [c_t1[pinned], c_u1[pinned], c_t2[pinned], c_u2[pinned]]
+        vals += [np.full(npn, w_c), np.full(npn, -w_c), np.full(npn, w_c), np.full(npn, -w_c)]
+        rhs += [-w_c * lam_min * e1[pinned], -w_c * lam_min * e2[pinned]]
+        rows, cols, vals = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
+        rhs = np.concatenate(rhs)
+        n_rows = r0 + nf + 2 * npn
+        A = sp.csr_matrix((vals, (rows, cols)), shape=(n_rows, n_cols))
+        fv = np.where(fixed, fixed_val, 0.0)
+        rhs = rhs - A @ fv
+        return A[:, free_idx], rhs
+
+    def full_x(x_free):
+        x = np.where(fixed, fixed_val, 0.0)
+        x[free_idx] = x_free
+        return x
+
+    def depths(x, pinned):
+        a1 = x[c_t1] - x[c_u1]
+        a2 = x[c_t2] - x[c_u2]
+        lam = -(a1 * e1 + a2 * e2) / en ** 2
+        lam = np.where(pinned, lam_min, lam)
+        if ref_obs >= 0:
+            lam[~not_ref] = 1.0
+        grad = w_c ** 2 * (e1 * (a1 + lam * e1) + e2 * (a2 + lam * e2))
+        return lam, grad
+
+    pinned = np.zeros(len(ob), bool)
+    x = np.where(fixed, fixed_val, 0.0)
+    lam = np.zeros(len(ob))
+    robust_w = np.ones(n_const_rows)
+    iterations = 0
+    n_down = 0
+    if len(ob) and len(free_idx):
+        for irls in range(max(config.robust_iterations, 0) + 1):
+            x, lam, pinned, it = _active_set(assemble, full_x, depths, pinned, robust_w, not_ref, lam_min, h0)
+            iterations += it
+            if irls == config.robust_iterations or n_const_rows == 0:
+                break
+            # Cauchy weights on the relation residuals, scale from their median absolute value
+            r = x[rel_c0] - x[rel_c1]
+            if n_pair_rows == 0:
+                break
+            sigma = max(1.4826 * float(np.median(np.abs(r[:n_pair_rows]))), 1e-6 * max(1.0, float(np.median(np.abs(lam)))))
+            new_w = 1.0 / (1.0 + (r / (config.robust_k * sigma)) ** 2)
+            new_w[n_pair_rows:] = 1.0  # floor rows carry the scale: never downweighted
+            if np.allclose(new_w, robust_w, atol=1e-3):
+                break
+            robust_w = new_w
+        n_down = int(np.sum(robust_w < 0.5))
+    elif len(ob):
+        lam, _ = depths(x, pinned)
+
+    # --- scale normalisation -----------------------------------------------------------------
+    tau = x[:3 * Fk].reshape(Fk, 3)
+    if scale_mode == "metric":
+        s = H / (tau[:, _VERTICAL].mean() - h0)
+    elif scale_mode == "camera_to_floor":
+        s = 1.0 / (tau[:, _VERTICAL].mean() - h0)
+    else:
+        s = 1.0 / lam.mean() if len(lam) else 1.0
+    if not np.isfinite(s) or s <= 0:
+        log.warning("linear: degenerate scale (%s); left unnormalised", s)
+        s = 1.0
+    x = x * s
+    lam = lam * s
+    tau = x[:3 * Fk].reshape(Fk, 3)
+    h = x[col_h]
+
+    centers = np.full((F, 3), np.nan)
+    centers[frames] = tau @ M
+
+    # --- lines -------------------------------------------------------------------------------
+    P = centers[o_f] + lam[:, None] * D[ob]  # (n, 3) observation points (world)
+    Pm = P @ M.T
+    coord = np.full((T, 3), 0.0)
+    for k in range(3):
+        has_k = o_axis[ob] != k
+        coord[:, k] = _group_median(Pm[has_k, k], o_t[has_k], T)
+    coord[np.arange(T), axis] = 0.0
+    valid = in_sys.copy()
+    valid &= np.isfinite(coord).all(axis=1)
+    taylor = np.where(valid[:, None], coord @ M, np.nan)
+    direction = M[axis]
+    extent = _extents(pre, camera, obs[ob], o_t, centers[o_f], taylor, direction, T)
+    valid &= np.isfinite(extent).all(axis=1)
+    lines = LineModel(taylor=taylor, direction=direction.copy(), axis=tracks.axis.astype(np.int8),
+                      extent=extent, valid=valid)
+
+    # --- residual report ---------------------------------------------------------------------
+    xr = x
+    res = {
+        "scale": scale_mode,
+        "metric": scale_mode == "metric",
+        "frames": int(F),
+        "registered": int(Fk),
+        "tracks_solved": int(len(tq)),
+        "observations": int(len(ob)),
+        "depths_at_bound": int(pinned.sum()),
+        "active_set_iterations": int(iterations),
+        "relations_downweighted": int(n_down),
+        "floor_height": float(h) if use_floor else None,
+        "scale_factor": float(s),  # final units per solve units (the depth bound applies in solve units)
+        "depth_min": float(lam.min()) if len(lam) else None,
+        "depth_median": float(np.median(lam)) if len(lam) else None,
+    }
+    a1 = xr[c_t1] - xr[c_u1] + lam * e1
+    a2 = xr[c_t2] - xr[c_u2] + lam * e2
+    res["colinearity_rms"] = _rms(np.concatenate([a1, a2]))
+    res["colinearity_count"] = int(len(ob))
+    for kind in (ORTHOGONAL, PARALLEL, JUNCTION):
+        m = rs & (r_kind == kind)
+        r = xr[u_col(r_a[m], r_k[m])] - xr[u_col(r_b[m], r_k[m])] if np.any(m) else np.zeros(0)
+        res[f"{RELATION_NAMES[kind]}_rms"] = _rms(r)
+        res[f"{RELATION_NAMES[kind]}_count"] = int(np.sum(m))
+    r = xr[u_col(f_t[fs], np.full(int(fs.sum()), _VERTICAL))] - h if np.any(fs) else np.zeros(0)
+    res["floor_rms"] = _rms(r)
+    res["floor_count"] = int(np.sum(fs))
+    res["seconds"] = time.perf_counter() - t_start
+    log.info("linear: registered %d / %d frames, %d lines, colinearity rms %.3g (%s scale) in %.2f s",
+             Fk, F, int(valid.sum()), res["colinearity_rms"] or 0.0, scale_mode, res["seconds"])
+    return Solution(R_wc=np.asarray(pre.R_wc, dtype=np.float64).copy(), centers=centers, registered=registered,
+                    lines=lines, camera=camera, metric=scale_mode == "metric", residuals=res)
+
+
+def _active_set(assemble, full_x, depths, pinned, robust_w, not_ref, lam_min, h0, max_iterations=30):
+    """Returns (x, depths, pinned, iterations): least squares with depths >= lam_min by a primal active set.
+
+    Violating depths are pinned at the bound; pinned depths whose gradient says the objective
+    decreases inside the feasible region are released; repeat until neither happens.
+    """
+    for it in range(1, max_iterations + 1):
+        A, rhs = assemble(pinned, robust_w)
+        x = full_x(_solve_normal(A, rhs))
+        lam, grad = depths(x, pinned)
+        tol = 1e-9 * max(1.0, abs(h0))
+        violate = ~pinned & not_ref & (lam < lam_min - tol)
+        release = pinned & (grad < -tol)
+        if not violate.any() and not release.any():
+            return x, lam, pinned, it
+        pinned = (pinned | violate) & ~release
+    log.warning("linear: depth active set did not converge in %d iterations", max_iterations)
+    return x, lam, pinned, max_iterations
+
+
+def _rms(r: np.ndarray) -> float | None:
+    return float(np.sqrt(np.mean(r ** 2))) if len(r) else None
+
+
+def _extents(pre: Preprocessed, camera: Camera, seg_ids: np.ndarray, seg_track: np.ndarray, seg_centers: np.ndarray,
+             taylor: np.ndarray, direction: np.ndarray, T: int) -> np.ndarray:
+    """Returns (T, 2) the line parameters (s0, s1) spanned by the closest points to the end-point rays."""
+    ext = np.full((T, 2), np.nan)
+    if len(seg_ids) == 0:
+        return ext
+    lo = np.full(T, np.inf)
+    hi = np.full(T, -np.inf)
+    p = taylor[seg_track]
+    u = direction[seg_track]
+    for which in ("start", "end"):
+        r = observation_rays(pre, camera, seg_ids, which)
+        w0 = p - seg_centers
+        b = np.sum(u * r, axis=1)
+        d = np.sum(u * w0, axis=1)
+        e = np.sum(r * w0, axis=1)
+        den = 1.0 - b ** 2
+        s = np.where(den > 1e-9, (b * e - d) / np.maximum(den, 1e-9), np.nan)
+        good = np.isfinite(s)
+        np.minimum.at(lo, seg_track[good], s[good])
+        np.maximum.at(hi, seg_track[good], s[good])
+    has = np.isfinite(lo) & np.isfinite(hi)
+    ext[has, 0] = lo[has]
+    ext[has, 1] = hi[has]
+    return ext

@@ -1,0 +1,147 @@
+"""Tests of the linear SfM solve (paper §3.3) on image-free synthetic problems with known answers."""
+
+import numpy as np
+import pytest
+
+from panosfm_graph.config import LinearConfig
+from panosfm_graph.data import FLOOR, Relations, Tracks
+from panosfm_graph.linear import solve_linear
+from panosfm_graph.synth.problem import make_problem
+
+
+def _height(p):
+    """Returns the true mean camera height above the floor (m)."""
+    return float(p.gt_centers[:, 2].mean() - p.scene.to_world(np.zeros(3))[2])
+
+def _umeyama(X, Y):
+    mx, my = X.mean(0), Y.mean(0)
+    U, d, Vt = np.linalg.svd((Y - my).T @ (X - mx) / len(X))
+    E = np.eye(3)
+    E[2, 2] = np.sign(np.linalg.det(U @ Vt))
+    R = U @ E @ Vt
+    s = (d * np.diag(E)).sum() / (X - mx).var(0).sum()
+    return s, R, my - s * R @ mx
+
+def _line_errors(p, sol, shift):
+    """Returns (distance of estimated endpoints to the GT edge's line, to the GT segment) for valid lines (m)."""
+    v = sol.lines.valid
+    E = sol.lines.endpoints[v].reshape(-1, 2, 3) + shift
+    G = p.gt_track_lines[v].reshape(-1, 2, 3)
+    u = G[:, 1] - G[:, 0]
+    L = np.linalg.norm(u, axis=1)
+    u /= L[:, None]
+    w = E - G[:, :1]
+    s = np.sum(w * u[:, None], axis=2)
+    to_line = np.linalg.norm(w - s[..., None] * u[:, None], axis=2)
+    to_seg = np.linalg.norm(w - np.clip(s, 0, L[:, None])[..., None] * u[:, None], axis=2)
+    return to_line, to_seg
+
+@pytest.fixture(scope="module")
+def clean():
+    return make_problem("living", 48, (480, 270), seed=0, pixel_noise_px=0.0)
+
+def test_exact_recovery_noise_free_metric(clean):
+    p = clean
+    sol = solve_linear(p.preprocessed, p.tracks, p.relations, p.camera, LinearConfig(camera_height_m=_height(p)))
+    reg = sol.registered
+    assert sol.metric and reg.mean() >= 0.9
+    assert np.all(np.isnan(sol.centers[~reg])) and np.all(np.isfinite(sol.centers[reg]))
+    first = np.flatnonzero(reg)[0]
+    assert np.allclose(sol.centers[first], 0.0)
+    # metric: translation-only alignment
+    shift = p.gt_centers[first] - sol.centers[first]
+    err = np.linalg.norm(sol.centers[reg] + shift - p.gt_centers[reg], axis=1)
+    assert err.max() < 1e-3
+    to_line, to_seg = _line_errors(p, sol, shift)
+    assert sol.lines.valid.mean() > 0.9
+    assert to_line.max() < 1e-3 and to_seg.max() < 1e-3
+    # Taylor point: closest point to the origin, perpendicular to the direction
+    assert np.allclose(np.sum(sol.lines.taylor[sol.lines.valid] * sol.lines.direction[sol.lines.valid], 1), 0, atol=1e-9)
+    assert np.array_equal(sol.R_wc, p.preprocessed.R_wc)
+
+def test_noisy_recovery_within_centimetres():
+    p = make_problem("office", 60, (480, 270), seed=0, pixel_noise_px=0.5, rot_noise_deg=0.1)
+    sol = solve_linear(p.preprocessed, p.tracks, p.relations, p.camera, LinearConfig(camera_height_m=_height(p)))
+    reg = sol.registered
+    assert reg.mean() >= 0.9
+    s, R, t = _umeyama(sol.centers[reg], p.gt_centers[reg])
+    err = np.linalg.norm((s * (R @ sol.centers[reg].T)).T + t - p.gt_centers[reg], axis=1)
+    assert np.median(err) < 0.02 and abs(s - 1) < 0.05
+    shift = p.gt_centers[reg].mean(0) - sol.centers[reg].mean(0)
+    to_line, _ = _line_errors(p, sol, shift)
+    assert np.median(to_line) < 0.03
+    res = sol.residuals
+    for key in ("colinearity", "orthogonal", "parallel", "junction", "floor"):
+        assert res[f"{key}_count"] > 0
+        assert 0 < res[f"{key}_rms"] < 0.01, key
+
+def test_scale_without_camera_height(clean):
+    p = clean
+    sol = solve_linear(p.preprocessed, p.tracks, p.relations, p.camera, LinearConfig())
+    assert not sol.metric and sol.residuals["scale"] == "camera_to_floor"
+    reg = sol.registered
+    # documented normalisation: the mean camera-to-floor distance is 1
+    assert np.isclose(sol.centers[reg][:, 2].mean() - sol.residuals["floor_height"], 1.0, atol=1e-9)
+    s, R, t = _umeyama(sol.centers[reg], p.gt_centers[reg])
+    h_reg = p.gt_centers[reg, 2].mean() - p.scene.to_world(np.zeros(3))[2]  # over the registered frames
+    assert np.isclose(s, h_reg, rtol=1e-5)
+    # no floor relations at all: one depth fixed, then mean depth = 1
+    r = p.relations
+    keep = r.kind != FLOOR
+    nofloor = Relations(r.kind[keep], r.track_a[keep], r.track_b[keep], r.normal_axis[keep], r.support[keep])
+    sol2 = solve_linear(p.preprocessed, p.tracks, nofloor, p.camera, LinearConfig(camera_height_m=1.5))
+    assert not sol2.metric and sol2.residuals["scale"] == "mean_depth"
+    reg2 = sol2.registered
+    s2, R2, t2 = _umeyama(sol2.centers[reg2], p.gt_centers[reg2])
+    err = np.linalg.norm((s2 * (R2 @ sol2.centers[reg2].T)).T + t2 - p.gt_centers[reg2], axis=1)
+    assert err.max() < 1e-3
+
+def test_disconnected_halves_register_only_the_larger(clean):
+    p = clean
+    F = p.n_frames
+    split = 30  # frames [0, 30) vs [30, 48)
+    pre, tr = p.preprocessed, p.tracks
+    frame = pre.segments.frame
+    t_of = tr.track_of
+    on = t_of >= 0
+    in_a = np.zeros(tr.n, bool)
+    in_b = np.zeros(tr.n, bool)
+    in_a[t_of[on & (frame < split)]] = True
+    in_b[t_of[on & (frame >= split)]] = True
+    linking = in_a & in_b
+    track_of = np.where(on & linking[np.maximum(t_of, 0)], -1, t_of).astype(np.int32)
+    tracks = Tracks(track_of, tr.axis)
+    r = p.relations
+    side = np.where(in_a, 0, 1)
+    bad = linking[r.track_a] | ((r.track_b >= 0) & (linking[np.maximum(r.track_b, 0)]
+                                                    | (side[r.track_a] != side[np.maximum(r.track_b, 0)])))
+    keep = ~bad
+    rel = Relations(r.kind[keep], r.track_a[keep], r.track_b[keep], r.normal_axis[keep], r.support[keep])
+    assert np.any(rel.kind == FLOOR)  # floor relations remain in both halves: they fix heights only
+    sol = solve_linear(pre, tracks, rel, p.camera, LinearConfig(camera_height_m=_height(p)))
+    reg = sol.registered
+    assert not reg[split:].any()
+    assert reg[:split].mean() >= 0.8
+    assert np.all(np.isnan(sol.centers[split:]))
+    # the height is a mean over the registered frames (here one half): compare up to a similarity
+    s, R, t = _umeyama(sol.centers[reg], p.gt_centers[reg])
+    err = np.linalg.norm((s * (R @ sol.centers[reg].T)).T + t - p.gt_centers[reg], axis=1)
+    assert err.max() < 1e-3 and abs(s - 1) < 0.01
+
+def test_depth_bound_is_respected(clean):
+    p = clean
+    cfg = LinearConfig(camera_height_m=_height(p), min_depth_m=3.0)
+    sol = solve_linear(p.preprocessed, p.tracks, p.relations, p.camera, cfg)
+    res = sol.residuals
+    assert res["depths_at_bound"] > 0
+    # the bound holds in the solve's units; the final rescale multiplies every depth by scale_factor
+    assert res["depth_min"] >= cfg.min_depth_m * res["scale_factor"] * (1 - 1e-9)
+    free = solve_linear(p.preprocessed, p.tracks, p.relations, p.camera, LinearConfig(camera_height_m=_height(p)))
+    assert free.residuals["depths_at_bound"] == 0 and free.residuals["depth_min"] < 3.0
+
+def test_zero_translation_baseline(clean):
+    p = clean
+    sol = solve_linear(p.preprocessed, p.tracks, p.relations, p.camera,
+                       LinearConfig(camera_height_m=_height(p), zero_translation=True))
+    assert np.allclose(sol.centers[sol.registered], 0.0)
+    assert sol.lines.valid.sum() > 0
