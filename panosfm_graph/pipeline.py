@@ -131,7 +131,7 @@ def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config =
     ``cache_dir`` (default ``<out>/cache``) may be shared between runs, as
     ablations do.
     """
-    from .capture import load_capture
+    from .capture import capture_warnings, load_capture
     from .export import atomic_output_dir
 
     t_start = time.perf_counter()
@@ -143,6 +143,7 @@ def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config =
     resumed: list[str] = []
     with stage("load", timings):
         capture = load_capture(capture_path, config.capture)
+        warnings = capture_warnings(capture, config.capture)  # InputError when there is no turn
     cache = StageCache(Path(cache_dir) if cache_dir is not None else out_dir / "cache", enabled=resume)
     result = RunResult(out_dir=out_dir, summary={}, capture=capture)
 
@@ -186,6 +187,7 @@ def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config =
     with stage("export", timings):
         with atomic_output_dir(out_dir, keep=CACHE_KEEP) as tmp:
             summary = _summary(capture, segments, result, config, timings, resumed, t_start)
+            summary["warnings"] = warnings
             _export(tmp, capture, segments, result, summary, rerun=rerun, spawn=spawn, views=views)
     result.summary = summary
     return result
@@ -343,7 +345,7 @@ def run_demo(out_dir: str | Path, *, scene: str = "living", n_frames: int = 120,
         from .capture import load_capture
 
         gt = load_capture(cap_dir, config.capture).ground_truth
-        floor_z = float(gt.scene.get("room_min", [0, 0, 0])[2]) if gt is not None else 0.0
+        floor_z = float(gt.scene.get("room", {}).get("min", [0, 0, 0])[2]) if gt is not None else 0.0
         height = float(np.mean(gt.centers[:, 2]) - floor_z) if gt is not None else 1.5
         config = dataclasses.replace(config, linear=dataclasses.replace(config.linear, camera_height_m=height))
     result = run_pipeline(cap_dir, out_dir / "reconstruction", config, spawn=spawn, resume=True)

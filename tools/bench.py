@@ -46,7 +46,7 @@ def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peer
             synthesize(cap, scene=scene, n_frames=frames, size=size, seed=seed + k)
             print(f"[{scene}] synthesised in {time.perf_counter() - t0:.1f} s", flush=True)
         gt = load_capture(cap).ground_truth
-        height = float(gt.centers[:, 2].mean() - gt.scene.get("room_min", [0, 0, 0])[2])
+        height = float(gt.centers[:, 2].mean() - gt.scene.get("room", {}).get("min", [0, 0, 0])[2])
         entry = {}
         rec = out / "runs" / scene / "panosfm"
         code, secs, err = _run([sys.executable, "-m", "panosfm_graph", "run", str(cap), str(rec),

@@ -1,0 +1,19 @@
+"""Synthetic spin captures of Manhattan box rooms (ray-cast), with ground truth.
+
+``synthesize(out_dir, scene="living", n_frames=300)`` writes a capture in the
+format of ``capture-format.md`` (frames, camera.json, frames.csv, imu.csv and
+ground_truth/). The pieces are usable alone: :func:`make_scene` /
+:data:`SCENES` (box rooms), :func:`spin_trajectory` (ground-truth poses),
+:func:`imu_stream` (drifting IMU attitude), :func:`render_frame` (colour,
+depth, normals of one view).
+"""
+from .scenes import SCENES, Faces, Scene, make_scene, scene_from_json, yaw_matrix
+from .trajectory import SpinParams, imu_stream, spin_params, spin_pose, spin_trajectory
+from .render import intrinsics, raycast, render_frame
+from .writer import frame_name, synthesize
+
+__all__ = [
+    "SCENES", "Faces", "Scene", "make_scene", "scene_from_json", "yaw_matrix",
+    "SpinParams", "imu_stream", "spin_params", "spin_pose", "spin_trajectory",
+    "intrinsics", "raycast", "render_frame", "frame_name", "synthesize",
+]

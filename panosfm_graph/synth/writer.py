@@ -1,0 +1,175 @@
+"""Writes a synthetic spin capture in the format of ``capture-format.md``.
+
+Layout written by :func:`synthesize`::
+
+    camera.json            PINHOLE, fx = fy = 0.8 * width, principal point at the centre, fps
+    frames/000000.png ...  BGR PNG (compression 1)
+    frames.csv             file,timestamp_s
+    imu.csv                timestamp_s,qw,qx,qy,qz   100 Hz drifting attitude (world_from_camera)
+    ground_truth/
+      poses.csv            file,qw,qx,qy,qz,tx,ty,tz  world_from_camera, t = camera centre (m)
+      lines.csv            x1,y1,z1,x2,y2,z2,label    world metres; label = ROOM Manhattan
+                                                      axis 0/1/2 of the edge (2 = vertical)
+      scene.json           boxes in the room frame + room yaw + room-to-world (see scenes.py)
+      synth.json           the generator's settings (scene, seed, drift, ...), to reproduce
+      normals/<stem>.npy   H x W x 3 float16 camera-frame unit normals towards the camera
+      depth/<stem>.npy     H x W float32 depth along the optical axis (m), 0 where no surface
+
+Everything is written into a temporary directory next to ``out_dir`` and
+renamed into place at the end, so a failed run leaves nothing half-written.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing as mp
+import os
+import shutil
+import tempfile
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..errors import InputError
+from ..geometry import matrix_to_quat_wxyz
+from ..progress import progress
+from .render import intrinsics, render_frame
+from .scenes import SCENES, Scene, make_scene
+from .trajectory import imu_stream, spin_trajectory
+
+log = logging.getLogger("panosfm")
+
+PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1]
+CHUNK_FRAMES = 8  # frames per worker task
+
+
+def frame_name(i: int) -> str:
+    """Returns the file name of frame ``i`` (``000123.png``)."""
+    return f"{i:06d}.png"
+
+
+def _render_chunk(scene: Scene, K: np.ndarray, R_wc: np.ndarray, centers: np.ndarray, indices: list[int],
+                  size: tuple[int, int], texture: float, blur: float, noise: float, seed: int,
+                  root: str, gt_maps: bool) -> int:
+    """Renders and writes frames ``indices`` (one worker task); returns how many were written."""
+    cv2.setNumThreads(1)
+    root_p = Path(root)
+    for j, i in enumerate(indices):
+        img, depth, normals = render_frame(scene, K, R_wc[j], centers[j], size, texture=texture, blur=blur,
+                                           noise=noise, seed=int(seed) * 1_000_003 + int(i))
+        name = frame_name(i)
+        if not cv2.imwrite(str(root_p / "frames" / name), img, PNG_PARAMS):
+            raise OSError(f"could not write {root_p / 'frames' / name}")
+        if gt_maps:
+            stem = Path(name).stem
+            np.save(root_p / "ground_truth" / "normals" / f"{stem}.npy", normals.astype(np.float16))
+            np.save(root_p / "ground_truth" / "depth" / f"{stem}.npy", depth.astype(np.float32))
+    return len(indices)
+
+
+def _write_csv(path: Path, header: str, rows: list[str]) -> None:
+    path.write_text(header + "\n" + "".join(r + "\n" for r in rows))
+
+
+def _fmt(a: np.ndarray) -> list[str]:
+    return [",".join(f"{x:.9g}" for x in row) for row in np.asarray(a, dtype=np.float64)]
+
+
+def _check_args(out: Path, scene: str, n_frames: int, size, workers: int, **nonneg: float) -> None:
+    if scene not in SCENES:
+        raise InputError(f"unknown scene {scene!r}; choose one of {', '.join(SCENES)}")
+    if int(n_frames) < 2:
+        raise InputError(f"n_frames must be at least 2, got {n_frames}")
+    if len(size) != 2 or min(int(size[0]), int(size[1])) < 16:
+        raise InputError(f"size must be (width, height) of at least 16 px, got {size}")
+    if int(workers) < 1:
+        raise InputError(f"workers must be at least 1, got {workers}")
+    for k, v in nonneg.items():
+        if not np.isfinite(v) or v < 0:
+            raise InputError(f"{k} must be a finite number >= 0, got {v}")
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise InputError("output path exists and is not an empty directory; choose another or remove it", out)
+
+
+def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int = 300,
+               size: tuple[int, int] = (960, 540), seed: int = 0, *, imu_drift_deg: float = 3.0,
+               turn_deg: float = 380.0, texture: float = 1.0, blur: float = 0.0, noise: float = 0.0,
+               gt_maps: bool = True, workers: int = 2, fps: float = 30.0,
+               imu_noise_deg: float = 0.1) -> Path:
+    """Returns the path of a new synthetic spin capture of ``scene`` written to ``out_dir``.
+
+    ``size`` is (width, height) px; ``seed`` seeds the spin, IMU noise, image
+    noise and (for ``scene="random"``) the room. ``imu_drift_deg``: IMU heading
+    drift accumulated from the first to the last frame. ``texture``: strength
+    of the procedural surface texture (0 = textureless). ``blur``: horizontal
+    motion blur length (px). ``noise``: image noise sigma (0..255 levels).
+    ``gt_maps=False`` skips the per-frame normal and depth maps.
+    Raises :class:`InputError` for an existing non-empty ``out_dir`` or bad settings.
+    """
+    out = Path(out_dir)
+    _check_args(out, scene, n_frames, size, workers, imu_drift_deg=abs(imu_drift_deg), texture=texture,
+                blur=blur, noise=noise, imu_noise_deg=imu_noise_deg, turn_deg=turn_deg, fps=fps)
+    if fps <= 0 or turn_deg <= 0:
+        raise InputError(f"fps and turn_deg must be > 0, got fps={fps}, turn_deg={turn_deg}")
+    n_frames, size, seed = int(n_frames), (int(size[0]), int(size[1])), int(seed)
+    sc = make_scene(scene, seed)
+    K = intrinsics(size)
+    R_wc, centers, ts = spin_trajectory(sc, n_frames, seed=seed, turn_deg=turn_deg, fps=fps)
+    t_imu, R_imu = imu_stream(sc, n_frames, seed=seed, turn_deg=turn_deg, fps=fps, imu_drift_deg=imu_drift_deg,
+                              noise_deg=imu_noise_deg)
+
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    except OSError as e:
+        raise InputError(f"cannot create the output directory ({e.strerror})", out) from None
+    try:
+        (tmp / "frames").mkdir()
+        gt = tmp / "ground_truth"
+        gt.mkdir()
+        if gt_maps:
+            (gt / "normals").mkdir()
+            (gt / "depth").mkdir()
+        names = [frame_name(i) for i in range(n_frames)]
+        w, h = size
+        (tmp / "camera.json").write_text(json.dumps(
+            {"model": "PINHOLE", "width": w, "height": h,
+             "params": [K[0, 0], K[1, 1], K[0, 2], K[1, 2]], "fps": fps}, indent=1) + "\n")
+        _write_csv(tmp / "frames.csv", "file,timestamp_s", [f"{n},{t:.9g}" for n, t in zip(names, ts)])
+        q_imu = matrix_to_quat_wxyz(R_imu)
+        _write_csv(tmp / "imu.csv", "timestamp_s,qw,qx,qy,qz", _fmt(np.column_stack([t_imu, q_imu])))
+        q_gt = matrix_to_quat_wxyz(R_wc)
+        _write_csv(gt / "poses.csv", "file,qw,qx,qy,qz,tx,ty,tz",
+                   [f"{n},{r}" for n, r in zip(names, _fmt(np.column_stack([q_gt, centers])))])
+        lines, labels = sc.edges()
+        _write_csv(gt / "lines.csv", "x1,y1,z1,x2,y2,z2,label",
+                   [f"{r},{int(lab)}" for r, lab in zip(_fmt(lines), labels)])
+        (gt / "scene.json").write_text(json.dumps(sc.to_json(), indent=1) + "\n")
+        settings = dict(scene=scene, n_frames=n_frames, size=list(size), seed=seed, imu_drift_deg=imu_drift_deg,
+                        imu_noise_deg=imu_noise_deg, turn_deg=turn_deg, texture=texture, blur=blur, noise=noise,
+                        fps=fps, gt_maps=bool(gt_maps))
+        (gt / "synth.json").write_text(json.dumps({"generator": "panosfm_graph.synth", **settings}, indent=1) + "\n")
+
+        chunks = [list(range(i, min(i + CHUNK_FRAMES, n_frames))) for i in range(0, n_frames, CHUNK_FRAMES)]
+        args = [(sc, K, R_wc[c[0]:c[-1] + 1], centers[c[0]:c[-1] + 1], c, size, texture, blur, noise, seed,
+                 str(tmp), bool(gt_maps)) for c in chunks]
+        if workers == 1 or len(chunks) == 1:
+            for a in progress(args, "synth frames"):
+                _render_chunk(*a)
+        else:
+            # fork: no re-import of the caller's __main__ (works from scripts without a main guard)
+            ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
+            with ProcessPoolExecutor(max_workers=min(int(workers), len(chunks)), mp_context=ctx) as ex:
+                futures = [ex.submit(_render_chunk, *a) for a in args]
+                for f in progress(as_completed(futures), "synth frames", total=len(futures)):
+                    f.result()
+        if out.exists():
+            out.rmdir()  # empty (checked above)
+        os.rename(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    log.info("wrote synthetic capture %s (%s, %d frames, %dx%d)", out, scene, n_frames, w, h)
+    return out
