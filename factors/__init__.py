@@ -1,0 +1,42 @@
+"""Custom GTSAM factors for panoramic line SfM (paper §3.4): numpy inputs + gtsam keys -> gtsam factors.
+
+One small module per factor; each error function has analytic Jacobians,
+checked against central differences in ``tests/test_factors.py``.
+"""
+from factors.colinearity import colinearity_error, colinearity_factor, colinearity_factor_builtin
+from factors.coplanarity import (
+    coplanarity_error,
+    coplanarity_factor,
+    coplanarity_factor_builtin,
+    floor_error,
+    floor_factor,
+    plane_offset_error,
+    plane_offset_factor,
+)
+from factors.imu_rotation import imu_noise, imu_rotation_factor
+from factors.line_reprojection import (
+    line_reprojection_error,
+    line_reprojection_factor,
+    segment_distances,
+    segment_residuals,
+)
+from factors.robust import noise_model, projection_noise, robust_kernel, robust_weight, sigma_from_weight
+from factors.taylor_line import (
+    interpretation_normal,
+    line_extent,
+    plucker,
+    project_line,
+    taylor_from_point_direction,
+    taylor_to_point_direction,
+)
+
+__all__ = [
+    "colinearity_error", "colinearity_factor", "colinearity_factor_builtin",
+    "coplanarity_error", "coplanarity_factor", "coplanarity_factor_builtin", "floor_error", "floor_factor",
+    "plane_offset_error", "plane_offset_factor",
+    "imu_noise", "imu_rotation_factor",
+    "line_reprojection_error", "line_reprojection_factor", "segment_distances", "segment_residuals",
+    "noise_model", "projection_noise", "robust_kernel", "robust_weight", "sigma_from_weight",
+    "interpretation_normal", "line_extent", "plucker", "project_line",
+    "taylor_from_point_direction", "taylor_to_point_direction",
+]

@@ -19,6 +19,10 @@ class CaptureConfig:
     every_k: int = 1  # take every k-th frame
     max_frames: int | None = None  # cap the number of frames (after every_k)
     scale: float = 1.0  # downscale factor applied to frames and intrinsics (0 < scale <= 1)
+    min_imu_rate_hz: float = 5.0  # an IMU slower than this AND than half the frame rate is an error
+    min_turn_deg: float = 90.0  # IMU yaw span over the frames below this: error (no spin to reconstruct)
+    full_turn_deg: float = 300.0  # ... below this: a warning, the result covers part of the room
+    max_gap_intervals: float = 3.0  # a frame gap longer than this many median intervals: "dropped frames" warning
 
 
 @dataclass(frozen=True)
@@ -49,11 +53,12 @@ class ManhattanConfig:
 class RotationConfig:
     """Supplement §2 (rotation refinement, Eq. 1)."""
 
-    imu_weight: float = 0.1  # lambda: weight of the IMU relative-rotation term
+    imu_weight: float = 1.0  # lambda of the IMU relative-rotation term (paper 0.1 with unweighted residuals)
     neighbour_angle_deg: float = 10.0  # frames whose optical axes differ less than this are neighbours
     max_neighbours: int = 8  # per frame, nearest in time first (keeps the graph sparse)
     max_iterations: int = 20
     huber_deg: float = 0.5  # Huber threshold on the Eq. 1 data residual (0: plain least squares as in the paper)
+    gravity_sigma_deg: float = 0.5  # prior on each frame's IMU gravity direction (0: off, as in the paper)
 
 
 @dataclass(frozen=True)
@@ -119,8 +124,9 @@ class GraphConfig:
     relation_weight: float = 1e4  # colinearity / coplanarity weight relative to reprojection (paper)
     reprojection_sigma_px: float = 1.0
     imu_sigma_deg: float = 0.2  # relative-rotation prior between neighbouring frames
-    robust: str = "huber"  # "none" | "huber" | "cauchy"
+    robust: str = "cauchy"  # "none" | "huber" | "cauchy" (measured: huber lets false coplanarities drag lines)
     robust_k: float = 1.345
+    support_weighting: bool = True  # relation sigma / sqrt(frames the relation was detected in)
     phases: tuple[int, ...] = (1, 2, 3)  # 1: lines+translations, 2: +rotations, 3: +intrinsics
     max_iterations: int = 30
     reject_sigma: float = 5.0  # drop relations whose residual exceeds this many sigmas, then resolve

@@ -237,11 +237,14 @@ def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
                    on_batch: Callable[[int, Solution], None] | None) -> Solution:
     from .graph import bundle_adjust, bundle_adjust_incremental
 
+    if not result.linear.registered.any():  # nothing to adjust: the result says so (0 frames registered)
+        log.warning("the linear solve registered no frame: bundle adjustment skipped")
+        return result.linear
     if config.graph.incremental_batch:
-        final, batches = bundle_adjust_incremental(pre, result.tracks, result.relations, result.linear,
-                                                   config.graph, on_batch=on_batch)
+        batches = bundle_adjust_incremental(pre, result.tracks, result.relations, result.linear,
+                                            config.graph, on_batch=on_batch)
         result.batches = list(batches)
-        return final
+        return result.batches[-1]
     return bundle_adjust(pre, result.tracks, result.relations, result.linear, config.graph)
 
 

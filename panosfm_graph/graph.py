@@ -1,0 +1,506 @@
+"""Bundle adjustment as a GTSAM factor graph (paper §3.4), solved in three phases.
+
+Variables (keys made by :func:`center_key`, :func:`rotation_key`, ...):
+
+* ``c<i>``  ``gtsam.Point3`` centre of registered frame i (world, m) — every
+  registered frame that observes at least one optimised line;
+* ``r<i>``  ``gtsam.Rot3`` R_wc of registered frame i (phases >= 2; in phase 1
+  the rotations are constants bound into the reprojection factors);
+* ``l<t>``  ``gtsam.Point3`` Taylor vector Lambda_t of track t (valid tracks
+  seen in >= 2 registered frames);
+* ``h0``    1-vector floor height (the floor plane is ``z . X = h``), present
+  when floor relations are used;
+* ``f0``    1-vector focal length fx in pixels (phase 3; fy keeps the aspect).
+
+Factors (``factors`` package), switched by :class:`GraphConfig`:
+line reprojection (one factor per chunk of a track's observations, sigma
+``reprojection_sigma_px``), colinearity and coplanarity/floor (sigma
+``reprojection_sigma_px / sqrt(relation_weight)``: the paper's weights 1 and
+1e4; coplanarity and floor additionally divided by sqrt(support) when
+``support_weighting`` and robustified with ``robust`` — Cauchy by default:
+measured on synthetic problems with 10 % injected false relations, Huber lets
+them drag weakly observed line depths by metres, Cauchy does not), IMU relative
+rotations between consecutive registered frames (``imu_sigma_deg``, scaled by
+sqrt of the frame gap).
+
+Gauge: a tight prior holds the first registered camera centre at its initial
+position; the world orientation is fixed by the Manhattan directions of the
+lines. Scale: a tight prior holds the floor height ``h`` at its initial value
+(so a metric initial solution stays metric: the camera-to-floor distance of
+the first frame is kept); without floor relations, the distance of the
+best-observed line from the first camera centre (along its initial normal) is
+held instead. Phase 3 adds a weak prior (10 % of the calibrated focal) on the
+focal length.
+
+Solver: our own Levenberg-Marquardt loop over ``graph.linearize`` /
+``GaussianFactorGraph.optimize`` / ``Values.retract`` with isotropic damping
+(``notes/gtsam-python-performance.md``: GTSAM's optimizers are slow with many
+Python factors). After the last phase relations whose whitened residual
+exceeds ``reject_sigma`` are dropped and the last phase is solved again
+(up to 3 rounds).
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import gtsam
+import numpy as np
+
+import factors
+from factors.line_reprojection import segment_distances, segment_residuals
+
+from .config import GraphConfig
+from .data import FLOOR, JUNCTION, ORTHOGONAL, PARALLEL, Camera, LineModel, Preprocessed, Relations, Solution, Tracks
+
+log = logging.getLogger("panosfm.graph")
+
+CHUNK_OBS = 8  # observations per reprojection factor (bounds the zero blocks of stacked Jacobians)
+GAUGE_SIGMA = 1e-4  # m: priors fixing the first centre and the scale
+FOCAL_PRIOR_FRAC = 0.1  # phase 3: weak prior on the focal length, sigma = this * calibrated focal
+MAX_REJECT_ROUNDS = 3
+
+
+def center_key(i: int) -> int:
+    """Returns the gtsam key of frame i's centre (Point3)."""
+    return gtsam.symbol("c", int(i))
+
+
+def rotation_key(i: int) -> int:
+    """Returns the gtsam key of frame i's R_wc (Rot3)."""
+    return gtsam.symbol("r", int(i))
+
+
+def line_key(t: int) -> int:
+    """Returns the gtsam key of track t's Taylor vector Lambda_t (Point3)."""
+    return gtsam.symbol("l", int(t))
+
+
+FLOOR_KEY = gtsam.symbol("h", 0)
+FOCAL_KEY = gtsam.symbol("f", 0)
+
+_KIND_SWITCH = {ORTHOGONAL: "coplanarity_orthogonal", PARALLEL: "coplanarity_parallel",
+                JUNCTION: "coplanarity_junction", FLOOR: "coplanarity_floor"}
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """The selected variables and observations of one BA problem (internal)."""
+
+    frames: np.ndarray  # registered frames with a centre variable (sorted)
+    rot_frames: np.ndarray  # registered frames (rotation variables in phases >= 2)
+    lines: np.ndarray  # optimised tracks (sorted)
+    obs_seg: np.ndarray  # observations (segment ids), sorted by track then frame
+    obs_track: np.ndarray
+    obs_frame: np.ndarray
+    directions: np.ndarray  # (T, 3) unit world direction per track
+    rel_idx: np.ndarray  # relations usable (both tracks optimised, type switched on)
+
+
+def _select(pre: Preprocessed, tracks: Tracks, relations: Relations, initial: Solution, config: GraphConfig) -> _Problem:
+    """Returns the problem's variables and observations: valid tracks seen in >= 2 registered frames."""
+    seg = pre.segments
+    tr = tracks.track_of
+    valid_track = initial.lines.valid.copy() if len(initial.lines.valid) == tracks.n else np.ones(tracks.n, bool)
+    s = np.flatnonzero(tr >= 0)
+    s = s[initial.registered[seg.frame[s]] & valid_track[tr[s]]]
+    n_obs = np.bincount(tr[s], minlength=tracks.n)
+    line_ok = valid_track & (n_obs >= 2) & np.all(np.isfinite(initial.lines.taylor), axis=1)
+    s = s[line_ok[tr[s]]]
+    order = np.lexsort((seg.frame[s], tr[s]))
+    s = s[order]
+    directions = pre.manhattan.directions[np.clip(tracks.axis, 0, 2)]
+    keep = np.zeros(relations.n, bool)
+    for kind, switch in _KIND_SWITCH.items():
+        if getattr(config, switch):
+            keep |= relations.kind == kind
+    ta, tb = relations.track_a, relations.track_b
+    ok_a = (ta >= 0) & line_ok[np.clip(ta, 0, None)]
+    ok_b = np.where(relations.kind == FLOOR, True, (tb >= 0) & line_ok[np.clip(tb, 0, None)])
+    rel_idx = np.flatnonzero(keep & ok_a & ok_b) if relations.n else np.zeros(0, int)
+    return _Problem(frames=np.unique(seg.frame[s]), rot_frames=np.flatnonzero(initial.registered),
+                    lines=np.flatnonzero(line_ok), obs_seg=s, obs_track=tr[s], obs_frame=seg.frame[s].astype(np.int64),
+                    directions=directions, rel_idx=rel_idx)
+
+
+def _relation_sigma(config: GraphConfig) -> float:
+    """Returns the colinearity / coplanarity sigma: weight ``relation_weight`` relative to reprojection (paper §3.4)."""
+    return factors.sigma_from_weight(config.relation_weight, config.reprojection_sigma_px)
+
+
+def relation_sigmas(relations: Relations, config: GraphConfig) -> np.ndarray:
+    """Returns (R,) per-relation sigmas: the relation sigma divided by sqrt(support) when ``support_weighting``.
+
+    A relation detected in k frames counts as k detections (the paper's
+    per-frame constraints, deduplicated here), so a sporadic false detection
+    cannot outweigh a relation seen in many frames.
+    """
+    sigma = np.full(relations.n, _relation_sigma(config))
+    if config.support_weighting:
+        sigma /= np.sqrt(np.maximum(relations.support, 1))
+    return sigma
+
+
+def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase: int, R_fixed: np.ndarray,
+                 K: np.ndarray, rel_mask: np.ndarray, config: GraphConfig, gauge: dict) -> tuple[gtsam.NonlinearFactorGraph, dict]:
+    """Returns (graph, factor counts by type) for one phase; ``rel_mask`` selects relations of ``prob.rel_idx``."""
+    graph = gtsam.NonlinearFactorGraph()
+    counts = {"reprojection": 0, "colinearity": 0, "orthogonal": 0, "parallel": 0, "junction": 0, "floor": 0,
+              "imu": 0, "prior": 0}
+    ep = pre.segments.endpoints.astype(np.float64)
+    rel_sigma = _relation_sigma(config)
+    if config.reprojection and len(prob.obs_seg):
+        t = prob.obs_track
+        starts = np.flatnonzero(np.r_[True, t[1:] != t[:-1]])
+        ends = np.r_[starts[1:], len(t)]
+        noise_cache = {}
+        for a, b in zip(starts, ends):
+            for c0 in range(a, b, CHUNK_OBS):
+                c1 = min(c0 + CHUNK_OBS, b)
+                n = c1 - c0
+                if n not in noise_cache:
+                    noise_cache[n] = factors.noise_model(2 * n, config.reprojection_sigma_px)
+                fr = prob.obs_frame[c0:c1]
+                graph.add(factors.line_reprojection_factor(
+                    line_key(t[c0]), [center_key(i) for i in fr], ep[prob.obs_seg[c0:c1]], prob.directions[t[c0]], K,
+                    noise_cache[n],
+                    rotation_keys=[rotation_key(i) for i in fr] if phase >= 2 else None,
+                    R_wc_fixed=R_fixed[fr] if phase < 2 else None,
+                    focal_key=FOCAL_KEY if phase >= 3 else None))
+                counts["reprojection"] += 1
+    if config.colinearity:
+        for t in prob.lines:
+            graph.add(factors.colinearity_factor_builtin(line_key(t), prob.directions[t], rel_sigma))
+        counts["colinearity"] = len(prob.lines)
+    dirs = pre.manhattan.directions
+    sig = relation_sigmas(relations, config)
+    for r in prob.rel_idx[rel_mask]:
+        kind = int(relations.kind[r])
+        normal = dirs[int(relations.normal_axis[r])]
+        if kind == FLOOR:
+            graph.add(factors.floor_factor(line_key(relations.track_a[r]), FLOOR_KEY, normal,
+                                           factors.noise_model(1, sig[r], config.robust, config.robust_k)))
+        else:
+            graph.add(factors.coplanarity_factor_builtin(line_key(relations.track_a[r]), line_key(relations.track_b[r]),
+                                                         normal, sig[r], config.robust, config.robust_k))
+        counts[("orthogonal", "parallel", "junction", "floor")[kind]] += 1
+    if phase >= 2 and config.imu_prior and len(prob.rot_frames) > 1:
+        fr = prob.rot_frames
+        for i, j in zip(fr[:-1], fr[1:]):
+            noise = factors.imu_noise(config.imu_sigma_deg * np.sqrt(j - i))
+            graph.add(factors.imu_rotation_factor(rotation_key(i), rotation_key(j), pre.R_wc_imu[i], pre.R_wc_imu[j], noise))
+            counts["imu"] += 1
+    # gauge: first centre, scale
+    tight = lambda d: gtsam.noiseModel.Isotropic.Sigma(d, GAUGE_SIGMA)  # noqa: E731
+    graph.add(gtsam.PriorFactorPoint3(center_key(gauge["first"]), gauge["first_center"], tight(3)))
+    counts["prior"] += 1
+    if gauge["use_floor"]:
+        graph.add(gtsam.PriorFactorVector(FLOOR_KEY, np.array([gauge["floor_h"]]), tight(1)))
+    else:
+        graph.add(factors.plane_offset_factor(line_key(gauge["scale_line"]), center_key(gauge["first"]),
+                                              gauge["scale_normal"], gauge["scale_offset"], tight(1)))
+    counts["prior"] += 1
+    if phase >= 3:
+        graph.add(gtsam.PriorFactorVector(FOCAL_KEY, np.array([K[0, 0]]),
+                                          gtsam.noiseModel.Isotropic.Sigma(1, FOCAL_PRIOR_FRAC * K[0, 0])))
+        counts["prior"] += 1
+    return graph, counts
+
+
+def _dims(values: gtsam.Values) -> list[tuple[int, int]]:
+    """Returns (key, tangent dimension) of every variable."""
+    out = []
+    for k in values.keys():
+        ch = chr(gtsam.Symbol(k).chr())
+        out.append((k, 1 if ch in "hf" else 3))
+    return out
+
+
+def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int = 30,
+                        rel_tol: float = 1e-4, lam0: float = 1e-4) -> tuple[gtsam.Values, dict]:
+    """Returns (optimised values, info) from a Levenberg-Marquardt loop driven from Python.
+
+    Damping ``lam * I`` per variable is added as unit JacobianFactors before
+    the sparse multifrontal solve; a step is accepted if it lowers
+    ``graph.error``; an indeterminate linear system (a direction no factor
+    constrains, e.g. Lambda along A without colinearity) raises the damping. ``info``: cost_before, cost_after, iterations, seconds.
+    """
+    t0 = time.perf_counter()
+    dims = _dims(values)
+    err0 = err = graph.error(values)
+    lam = lam0
+    it = 0
+    unit = {d: gtsam.noiseModel.Unit.Create(d) for d in (1, 3)}
+    eyes = {d: np.eye(d) for d in (1, 3)}
+    zeros = {d: np.zeros(d) for d in (1, 3)}
+    for it in range(1, max_iterations + 1):
+        gfg = graph.linearize(values)
+        accepted = False
+        while lam < 1e12:
+            damped = gtsam.GaussianFactorGraph()
+            damped.push_back(gfg)
+            s = np.sqrt(lam)
+            for k, d in dims:
+                damped.push_back(gtsam.JacobianFactor(k, s * eyes[d], zeros[d], unit[d]))
+            try:
+                delta = damped.optimize()
+            except RuntimeError:  # indeterminate (a null direction, damping too weak): damp more
+                lam *= 10.0
+                continue
+            cand = values.retract(delta)
+            new_err = graph.error(cand)
+            if np.isfinite(new_err) and new_err <= err:
+                accepted = True
+                break
+            lam *= 10.0
+        if not accepted:
+            break
+        decrease = err - new_err
+        values, err = cand, new_err
+        lam = max(lam / 10.0, 1e-12)
+        if decrease <= rel_tol * max(err, 1e-30) or err < 1e-20:
+            break
+    return values, {"cost_before": float(err0), "cost_after": float(err), "iterations": it,
+                    "seconds": time.perf_counter() - t0}
+
+
+def line_extents(taylor: np.ndarray, direction: np.ndarray, endpoints: np.ndarray, R_wc: np.ndarray,
+                 centers: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Returns (N, 2) line coordinates s of the points of the 3D lines closest to the endpoints' viewing rays.
+
+    Rows are observations: ``taylor``/``direction`` (N, 3), ``endpoints`` (N, 4) pixels,
+    ``R_wc`` (N, 3, 3), ``centers`` (N, 3). NaN where a ray is parallel to its line.
+    """
+    Kinv = np.linalg.inv(K)
+    out = np.empty((len(endpoints), 2))
+    for e in range(2):
+        uv1 = np.c_[endpoints[:, 2 * e:2 * e + 2], np.ones(len(endpoints))]
+        D = np.einsum("nij,nj->ni", R_wc, uv1 @ Kinv.T)
+        D /= np.linalg.norm(D, axis=1, keepdims=True)
+        w0 = taylor - centers
+        b = np.sum(direction * D, axis=1)
+        d = np.sum(direction * w0, axis=1)
+        ee = np.sum(D * w0, axis=1)
+        den = 1.0 - b**2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out[:, e] = np.where(den > 1e-6, (b * ee - d) / den, np.nan)
+    return out
+
+
+def _solution(pre: Preprocessed, tracks: Tracks, initial: Solution, prob: _Problem, values: gtsam.Values,
+              R_wc: np.ndarray, camera: Camera, residuals: dict) -> Solution:
+    """Returns the Solution read from ``values`` (Lambda projected onto its direction's normal plane, extents from observations)."""
+    centers = initial.centers.copy()
+    for i in prob.frames:
+        centers[i] = values.atPoint3(center_key(i))
+    taylor = initial.lines.taylor.copy()
+    raw = np.array([values.atPoint3(line_key(t)) for t in prob.lines]).reshape(-1, 3)
+    A = prob.directions[prob.lines]
+    taylor[prob.lines] = factors.taylor_from_point_direction(raw, A)
+    direction = initial.lines.direction.copy()
+    direction[prob.lines] = A
+    extent = initial.lines.extent.copy()
+    if len(prob.obs_seg):
+        t = prob.obs_track
+        s = line_extents(taylor[t], prob.directions[t], pre.segments.endpoints[prob.obs_seg].astype(np.float64),
+                         R_wc[prob.obs_frame], centers[prob.obs_frame], camera.K)
+        s = np.where(np.isfinite(s), s, np.nan)
+        lo = np.full(tracks.n, np.inf)
+        hi = np.full(tracks.n, -np.inf)
+        np.minimum.at(lo, t, np.nanmin(s, axis=1, initial=np.inf))
+        np.maximum.at(hi, t, np.nanmax(s, axis=1, initial=-np.inf))
+        ok = np.isfinite(lo) & np.isfinite(hi)
+        extent[ok] = np.c_[lo[ok], hi[ok]]
+    valid = initial.lines.valid.copy()
+    residuals["colinearity_rms_m"] = float(np.sqrt(np.mean(np.sum(raw * A, axis=1) ** 2))) if len(raw) else 0.0
+    lines = LineModel(taylor=taylor, direction=direction, axis=tracks.axis.copy(), extent=extent, valid=valid)
+    centers[~initial.registered] = np.nan
+    return Solution(R_wc=R_wc, centers=centers, registered=initial.registered.copy(), lines=lines, camera=camera,
+                    metric=initial.metric, residuals=residuals)
+
+
+def _camera_with_focal(camera: Camera, fx: float) -> Camera:
+    """Returns ``camera`` with fx set to ``fx`` and fy scaled by the same factor (principal point kept)."""
+    p = np.array(camera.params, dtype=np.float64)
+    if camera.model == "SIMPLE_PINHOLE":
+        p[0] = fx
+    else:
+        scale = fx / p[0]
+        p[0] = fx
+        p[1] = p[1] * scale
+    return dataclasses.replace(camera, params=p)
+
+
+def _reprojection_rms(pre: Preprocessed, prob: _Problem, taylor: np.ndarray, R_wc: np.ndarray, centers: np.ndarray,
+                      K: np.ndarray) -> float:
+    """Returns the RMS segment-averaged reprojection distance (pixels) over all observations."""
+    if len(prob.obs_seg) == 0:
+        return 0.0
+    t, f = prob.obs_track, prob.obs_frame
+    d1, d2 = segment_distances(pre.segments.endpoints[prob.obs_seg].astype(np.float64), taylor[t], prob.directions[t],
+                               R_wc[f], centers[f], K)
+    return float(np.sqrt(np.mean(np.sum(segment_residuals(d1, d2) ** 2, axis=1))))
+
+
+def relation_residuals(relations: Relations, directions: np.ndarray, taylor: np.ndarray, floor_h: float) -> np.ndarray:
+    """Returns (R,) coplanarity residuals (m): ``(Lambda_a - Lambda_b) . n`` or, for floor, ``Lambda_a . n - h``."""
+    n = directions[relations.normal_axis.astype(int)]
+    a = taylor[relations.track_a]
+    b = taylor[np.clip(relations.track_b, 0, None)]
+    pair = np.sum((a - b) * n, axis=1)
+    floor = np.sum(a * n, axis=1) - floor_h
+    return np.where(relations.kind == FLOOR, floor, pair)
+
+
+def bundle_adjust(pre: Preprocessed, tracks: Tracks, relations: Relations, initial: Solution,
+                  config: GraphConfig = GraphConfig()) -> Solution:
+    """Returns the bundle-adjusted Solution (paper §3.4): lines + centres, then + rotations, then + focal.
+
+    ``initial`` (e.g. from the linear solve) gives the registered frames, the
+    valid tracks and the starting values. ``residuals`` of the result holds,
+    per phase, cost before/after (0.5 * sum of whitened squared residuals),
+    iterations and seconds; factor counts; relations rejected; the final
+    RMS reprojection distance (px) and the camera's focal length.
+    """
+    prob = _select(pre, tracks, relations, initial, config)
+    camera = initial.camera
+    K = camera.K
+    R_wc = np.where(initial.registered[:, None, None], initial.R_wc, np.nan)
+    if not np.all(np.isfinite(initial.R_wc[initial.registered])):
+        raise ValueError("initial solution has non-finite rotations for registered frames")
+    values = gtsam.Values()
+    for i in prob.frames:
+        values.insert(center_key(i), np.asarray(initial.centers[i], dtype=np.float64))
+    for t in prob.lines:
+        values.insert(line_key(t), np.asarray(initial.lines.taylor[t], dtype=np.float64))
+    gauge = _gauge(relations, prob, initial, pre.manhattan.directions)
+    residuals: dict = {"phases": {}, "factors": {}}
+    rel_mask = np.ones(len(prob.rel_idx), bool)
+    floor_used = bool(np.any(relations.kind[prob.rel_idx] == FLOOR))
+    gauge["use_floor"] = floor_used
+    if floor_used:
+        values.insert(FLOOR_KEY, np.array([gauge["floor_h"]]))
+    residuals["reprojection_rms_px_initial"] = _reprojection_rms(pre, prob, initial.lines.taylor, initial.R_wc,
+                                                                 initial.centers, K)
+    phases = sorted(set(config.phases)) or [1]
+    last = phases[-1]
+    n_rejected = 0
+    rejected: list[int] = []
+    for phase in phases:
+        if phase >= 2:
+            for i in prob.rot_frames:
+                if not values.exists(rotation_key(i)):
+                    values.insert(rotation_key(i), gtsam.Rot3(_orthonormal(R_wc[i])))
+        if phase >= 3 and not values.exists(FOCAL_KEY):
+            values.insert(FOCAL_KEY, np.array([K[0, 0]]))
+        rounds = MAX_REJECT_ROUNDS if phase == last else 0
+        for rnd in range(rounds + 1):
+            graph, counts = _build_graph(pre, relations, prob, phase, R_wc, K, rel_mask, config, gauge)
+            values, info = levenberg_marquardt(graph, values, config.max_iterations)
+            info["factors"] = counts
+            name = f"phase{phase}" if rnd == 0 else f"phase{phase}_reject{rnd}"
+            residuals["phases"][name] = info
+            residuals["factors"] = counts
+            log.info("BA %s: cost %.4g -> %.4g in %d iterations (%.2f s)", name, info["cost_before"],
+                     info["cost_after"], info["iterations"], info["seconds"])
+            if rnd == rounds or len(prob.rel_idx) == 0:
+                break
+            taylor_now = initial.lines.taylor.copy()
+            for t in prob.lines:
+                taylor_now[t] = values.atPoint3(line_key(t))
+            h = values.atVector(FLOOR_KEY)[0] if values.exists(FLOOR_KEY) else 0.0
+            sub = Relations(*(np.asarray(getattr(relations, f.name))[prob.rel_idx] for f in dataclasses.fields(Relations)))
+            white = np.abs(relation_residuals(sub, pre.manhattan.directions, taylor_now, h)) / relation_sigmas(sub, config)
+            drop = rel_mask & (white > config.reject_sigma)
+            if not drop.any():
+                break
+            rel_mask &= ~drop
+            n_rejected += int(drop.sum())
+            rejected.extend(int(r) for r in prob.rel_idx[drop])
+        if phase >= 2:
+            for i in prob.rot_frames:
+                R_wc[i] = values.atRot3(rotation_key(i)).matrix()
+        if phase >= 3:
+            camera = _camera_with_focal(initial.camera, values.atVector(FOCAL_KEY)[0])
+            K = camera.K
+    residuals["relations_used"] = int(rel_mask.sum())
+    residuals["relations_rejected"] = n_rejected
+    residuals["rejected_relations"] = sorted(rejected)
+    residuals["focal_px"] = float(camera.K[0, 0])
+    sol = _solution(pre, tracks, initial, prob, values, R_wc, camera, residuals)
+    residuals["reprojection_rms_px"] = _reprojection_rms(pre, prob, sol.lines.taylor, sol.R_wc, sol.centers, camera.K)
+    if values.exists(FLOOR_KEY):
+        residuals["floor_height"] = float(values.atVector(FLOOR_KEY)[0])
+    return sol
+
+
+def _orthonormal(R: np.ndarray) -> np.ndarray:
+    u, _, vt = np.linalg.svd(R)
+    return u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+
+
+def _gauge(relations: Relations, prob: _Problem, initial: Solution, manhattan: np.ndarray) -> dict:
+    """Returns the gauge constants: first centre, floor height, and the fallback scale line."""
+    first = int(prob.frames[0]) if len(prob.frames) else int(np.flatnonzero(initial.registered)[0])
+    c0 = np.asarray(initial.centers[first], dtype=np.float64)
+    fl = prob.rel_idx[relations.kind[prob.rel_idx] == FLOOR]
+    floor_h = 0.0
+    if len(fl):
+        n = manhattan[relations.normal_axis[fl].astype(int)]
+        floor_h = float(np.median(np.sum(initial.lines.taylor[relations.track_a[fl]] * n, axis=1)))
+    counts = np.bincount(prob.obs_track, minlength=len(prob.directions)) if len(prob.obs_track) else np.zeros(1, int)
+    best = int(np.argmax(counts)) if len(prob.lines) else 0
+    lam = np.asarray(initial.lines.taylor[best], dtype=np.float64)
+    A = prob.directions[best]
+    v = lam - c0
+    v = v - (v @ A) * A
+    dist = float(np.linalg.norm(v))
+    normal = v / dist if dist > 1e-9 else np.cross(A, [0.0, 0.0, 1.0] if abs(A[2]) < 0.9 else [1.0, 0.0, 0.0])
+    normal = normal / np.linalg.norm(normal)
+    return {"first": first, "first_center": c0, "floor_h": floor_h, "scale_line": best,
+            "scale_normal": normal, "scale_offset": float(normal @ (lam - c0))}
+
+
+def bundle_adjust_incremental(pre: Preprocessed, tracks: Tracks, relations: Relations, initial: Solution,
+                              config: GraphConfig = GraphConfig(), batch_frames: int | None = None,
+                              on_batch: Callable[[int, Solution], None] | None = None) -> list[Solution]:
+    """Returns the per-batch bundle-adjusted Solutions (the last is the final one) as frames arrive in batches.
+
+    Registered frames are added in time order, ``batch_frames`` at a time
+    (default ``config.incremental_batch``, else 50). Each batch is a
+    warm-started batch solve (:func:`bundle_adjust`, all phases) over the
+    frames so far: frames and lines already estimated start from the previous
+    batch's estimate, new ones from ``initial``. (Measured against iSAM2 in
+    ``tools/bench_ba.py``: see the report.) In a batch's Solution only the
+    frames so far are registered and only lines seen in >= 2 of them are valid.
+    ``on_batch(k, solution)`` is called after each batch.
+    """
+    n = int(batch_frames or config.incremental_batch or 50)
+    if n < 1:
+        raise ValueError("batch_frames must be >= 1")
+    reg = np.flatnonzero(initial.registered)
+    seg_frame = pre.segments.frame
+    tr = tracks.track_of
+    current = initial
+    out: list[Solution] = []
+    for k, end in enumerate(range(n, len(reg) + n, n)):
+        mask = np.zeros_like(initial.registered)
+        mask[reg[:end]] = True
+        s = np.flatnonzero((tr >= 0) & mask[seg_frame])
+        seen = np.bincount(tr[s], minlength=tracks.n) >= 2
+        start = dataclasses.replace(current, registered=mask,
+                                    lines=dataclasses.replace(current.lines, valid=initial.lines.valid & seen))
+        sol = bundle_adjust(pre, tracks, relations, start, config)
+        out.append(sol)
+        if on_batch is not None:
+            on_batch(k, sol)
+        # next start: this batch's estimates where they exist, the initial values elsewhere
+        centers = np.where(mask[:, None], sol.centers, initial.centers)
+        R_wc = np.where(mask[:, None, None], sol.R_wc, initial.R_wc)
+        taylor = np.where(seen[:, None], sol.lines.taylor, initial.lines.taylor)
+        current = dataclasses.replace(initial, R_wc=R_wc, centers=centers, camera=sol.camera,
+                                      lines=dataclasses.replace(initial.lines, taylor=taylor))
+    return out

@@ -1,0 +1,234 @@
+"""Factors: analytic Jacobians vs central differences on each variable's retract; residual semantics."""
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import factors
+from factors import taylor_line
+
+UNIT = gtsam.noiseModel.Isotropic.Sigma
+
+
+def _dim(values, key):
+    return values.atVector(key).size if _is_vector(values, key) else 3
+
+
+def _is_vector(values, key):
+    try:
+        values.atVector(key)
+        return True
+    except Exception:
+        return False
+
+
+def _retract_one(values, key, delta):
+    """Returns a copy of ``values`` with only ``key`` retracted by ``delta``."""
+    vv = gtsam.VectorValues()
+    for k in values.keys():
+        vv.insert(k, delta if k == key else np.zeros(_dim(values, k)))
+    return values.retract(vv)
+
+
+def check_jacobians(factor, values, eps=1e-6, rtol=1e-5, atol=1e-7):
+    """Asserts the factor's analytic Jacobians equal central differences of its unwhitened error."""
+    jf = factor.linearize(values)
+    A, b = jf.jacobian()
+    # tests use unit isotropic noise: whitened == unwhitened
+    np.testing.assert_allclose(-b, factor.unwhitenedError(values), rtol=1e-10, atol=1e-12)
+    col = 0
+    for key in jf.keys():
+        d = _dim(values, key)
+        num = np.zeros((len(b), d))
+        for a in range(d):
+            e = np.zeros(d)
+            e[a] = eps
+            num[:, a] = (factor.unwhitenedError(_retract_one(values, key, e))
+                         - factor.unwhitenedError(_retract_one(values, key, -e))) / (2 * eps)
+        ana = A[:, col:col + d]
+        scale = max(1.0, np.abs(num).max())
+        np.testing.assert_allclose(ana, num, rtol=rtol, atol=atol * scale * 1e2,
+                                   err_msg=f"Jacobian of key {gtsam.DefaultKeyFormatter(key)}")
+        col += d
+
+
+def random_rot(rng):
+    return Rotation.random(random_state=rng).as_matrix()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_colinearity_and_coplanarity_jacobians(seed):
+    rng = np.random.default_rng(seed)
+    L, M, H, C = gtsam.symbol("l", 0), gtsam.symbol("l", 1), gtsam.symbol("h", 0), gtsam.symbol("c", 0)
+    v = gtsam.Values()
+    v.insert(L, rng.normal(size=3))
+    v.insert(M, rng.normal(size=3))
+    v.insert(C, rng.normal(size=3))
+    v.insert(H, np.array([rng.normal()]))
+    n = rng.normal(size=3)
+    n /= np.linalg.norm(n)
+    check_jacobians(factors.colinearity_factor(L, n, UNIT(1, 1.0)), v)
+    check_jacobians(factors.coplanarity_factor(L, M, n, UNIT(1, 1.0)), v)
+    check_jacobians(factors.floor_factor(L, H, n, UNIT(1, 1.0)), v)
+    check_jacobians(factors.plane_offset_factor(L, C, n, 0.7, UNIT(1, 1.0)), v)
+    # semantics
+    lam_l, lam_m = v.atPoint3(L), v.atPoint3(M)
+    assert factors.coplanarity_factor(L, M, n, UNIT(1, 1.0)).unwhitenedError(v)[0] == pytest.approx(n @ (lam_l - lam_m))
+    assert factors.floor_factor(L, H, n, UNIT(1, 1.0)).unwhitenedError(v)[0] == pytest.approx(n @ lam_l - v.atVector(H)[0])
+
+
+def _reprojection_state(rng, nobs):
+    """A line seen by nobs cameras around the origin, all looking at it."""
+    A = np.eye(3)[rng.integers(3)]
+    p = rng.normal(size=3) * 0.3 + 2.5 * np.cross(A, rng.normal(size=3) + 0.1).clip(-1, 1)
+    lam = taylor_line.taylor_from_point_direction(p, A) + 0.05 * A  # off the constraint on purpose
+    K = np.array([[500.0, 0, 320], [0, 480.0, 240], [0, 0, 1]])
+    C = rng.normal(size=(nobs, 3)) * 0.1
+    R = []
+    for c in C:
+        z = (lam - c) / np.linalg.norm(lam - c)  # optical axis towards the line
+        x = np.cross(z, rng.normal(size=3))
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        R0 = np.stack([x, y, z], axis=1)
+        R.append(R0 @ Rotation.from_rotvec(rng.normal(size=3) * 0.05).as_matrix())
+    R = np.array(R)
+    # observed endpoints: project two points on the line, add noise
+    from panosfm_graph.geometry import project
+    ep = []
+    for c, Rw in zip(C, R):
+        X = np.stack([lam - 0.4 * A, lam + 0.5 * A])
+        uv, _ = project(K, Rw, c, X)
+        ep.append(uv.ravel() + rng.normal(size=4) * 2.0)
+    return A, lam, K, C, R, np.array(ep)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+@pytest.mark.parametrize("variant", ["fixed_rot", "rot", "rot_focal", "fixed_rot_focal"])
+def test_line_reprojection_jacobians(seed, variant):
+    rng = np.random.default_rng(seed)
+    nobs = 1 + seed
+    A, lam, K, C, R, ep = _reprojection_state(rng, nobs)
+    v = gtsam.Values()
+    L = gtsam.symbol("l", 7)
+    ck = [gtsam.symbol("c", i) for i in range(nobs)]
+    rk = [gtsam.symbol("r", i) for i in range(nobs)]
+    F = gtsam.symbol("f", 0)
+    v.insert(L, lam)
+    for k, c in zip(ck, C):
+        v.insert(k, c)
+    with_rot = variant.startswith("rot")
+    with_focal = variant.endswith("focal")
+    if with_rot:
+        for k, Rw in zip(rk, R):
+            v.insert(k, gtsam.Rot3(Rw))
+    if with_focal:
+        v.insert(F, np.array([K[0, 0] * 1.02]))
+    f = factors.line_reprojection_factor(L, ck, ep, A, K, UNIT(2 * nobs, 1.0),
+                                         rotation_keys=rk if with_rot else None,
+                                         R_wc_fixed=None if with_rot else R,
+                                         focal_key=F if with_focal else None)
+    check_jacobians(f, v, eps=1e-6, rtol=2e-4, atol=1e-6)
+
+
+def test_line_reprojection_is_segment_averaged_distance():
+    rng = np.random.default_rng(5)
+    A, lam, K, C, R, ep = _reprojection_state(rng, 3)
+    d1, d2 = factors.segment_distances(ep, np.broadcast_to(lam, (3, 3)), A, R, C, K)
+    # brute force: distance of 2001 points along each segment to the projected line
+    lines = taylor_line.project_line(np.broadcast_to(lam, (3, 3)), A, R, C, K)
+    t = np.linspace(0, 1, 2001)
+    for s in range(3):
+        pts = ep[s, :2] + t[:, None] * (ep[s, 2:] - ep[s, :2])
+        dist = pts @ lines[s, :2] + lines[s, 2]
+        assert dist[0] == pytest.approx(d1[s], rel=1e-9, abs=1e-9)
+        assert dist[-1] == pytest.approx(d2[s], rel=1e-9, abs=1e-9)
+        r = factors.segment_residuals(d1[s:s + 1], d2[s:s + 1])
+        assert np.sum(r**2) == pytest.approx(np.trapezoid(dist**2, t), rel=1e-6)
+    # exact line, exact endpoints -> zero residual
+    from panosfm_graph.geometry import project
+    lam0 = taylor_line.taylor_from_point_direction(lam, A)
+    uv, _ = project(K, R[0], C[0], np.stack([lam0, lam0 + A]))
+    d1, d2 = factors.segment_distances(uv.reshape(1, 4), lam0[None], A, R[:1], C[:1], K)
+    assert abs(d1[0]) < 1e-8 and abs(d2[0]) < 1e-8
+
+
+def test_imu_rotation_factor_zero_at_measurement_and_jacobian():
+    rng = np.random.default_rng(3)
+    Ri, Rj = random_rot(rng), random_rot(rng)
+    ki, kj = gtsam.symbol("r", 0), gtsam.symbol("r", 1)
+    noise = factors.imu_noise(0.2)
+    f = factors.imu_rotation_factor(ki, kj, Ri, Rj, noise)
+    v = gtsam.Values()
+    v.insert(ki, gtsam.Rot3(Ri))
+    v.insert(kj, gtsam.Rot3(Rj))
+    assert np.linalg.norm(f.unwhitenedError(v)) < 1e-9
+    # perturb j by 0.5 deg about its own z axis: error = that rotation vector
+    dv = np.radians([0.0, 0.0, 0.5])
+    v2 = gtsam.Values()
+    v2.insert(ki, gtsam.Rot3(Ri))
+    v2.insert(kj, gtsam.Rot3(Rj @ Rotation.from_rotvec(dv).as_matrix()))
+    np.testing.assert_allclose(f.unwhitenedError(v2), dv, atol=1e-9)
+    # whitened error = 0.5 deg / 0.2 deg sigma
+    assert np.sqrt(2 * f.error(v2)) == pytest.approx(2.5, rel=1e-6)
+
+
+def test_noise_models_and_weights():
+    assert factors.sigma_from_weight(1e4) == pytest.approx(0.01)
+    nm = factors.noise_model(1, 0.01, "huber", 1.345)
+    # whitened residual 10 sigmas: Huber loss k(|r| - k/2) instead of r²/2
+    assert nm.loss(nm.squaredMahalanobisDistance(np.array([0.1]))) == pytest.approx(1.345 * (10 - 1.345 / 2), rel=1e-6)
+    nc = factors.noise_model(1, 1.0, "cauchy", 2.0)
+    assert nc.loss(nc.squaredMahalanobisDistance(np.array([2.0]))) == pytest.approx(2.0 * np.log(2.0), rel=1e-6)
+    np.testing.assert_allclose(factors.robust_weight([0.5, 10.0], "huber", 1.0), [1.0, 0.1])
+    with pytest.raises(ValueError):
+        factors.noise_model(1, 1.0, "tukeyx")
+
+
+def test_taylor_helpers_roundtrip():
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(5, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    p = rng.normal(size=(5, 3))
+    lam = taylor_line.taylor_from_point_direction(p, d)
+    np.testing.assert_allclose(np.sum(lam * d, axis=1), 0, atol=1e-12)
+    # Lambda is the closest point: the norm is the line's distance from the origin
+    s = taylor_line.line_extent(lam, d, p)
+    np.testing.assert_allclose(lam + s[:, None] * d, p, atol=1e-12)
+    pl = taylor_line.plucker(lam, d)
+    np.testing.assert_allclose(np.linalg.norm(pl[:, 3:], axis=1), np.linalg.norm(lam, axis=1), atol=1e-12)
+
+
+def _normal_equations(factor, values, order):
+    g = gtsam.GaussianFactorGraph()
+    g.push_back(factor.linearize(values))
+    return g.augmentedHessian(order)
+
+
+@pytest.mark.parametrize("robust", ["none", "huber", "cauchy"])
+def test_builtin_relation_factors_equal_custom(robust):
+    rng = np.random.default_rng(11)
+    L, M = gtsam.symbol("l", 0), gtsam.symbol("l", 1)
+    v = gtsam.Values()
+    v.insert(L, rng.normal(size=3))
+    v.insert(M, rng.normal(size=3))
+    n = rng.normal(size=3)
+    n /= np.linalg.norm(n)
+    sigma = 0.01
+    pairs = [
+        (factors.coplanarity_factor(L, M, n, factors.noise_model(1, sigma, robust)),
+         factors.coplanarity_factor_builtin(L, M, n, sigma, robust)),
+    ]
+    if robust == "none":
+        pairs.append((factors.colinearity_factor(L, n, factors.noise_model(1, sigma)),
+                      factors.colinearity_factor_builtin(L, n, sigma)))
+    for custom, builtin in pairs:
+        assert builtin.error(v) == pytest.approx(custom.error(v), rel=1e-10)
+        # same whitened normal equations (the builtin has two extra zero rows)
+        order = gtsam.Ordering()
+        for k in custom.keys():
+            order.push_back(k)
+        Hc, Hb = (_normal_equations(f, v, order) for f in (custom, builtin))
+        np.testing.assert_allclose(Hb, Hc, rtol=1e-9, atol=1e-9 * np.abs(Hc).max())

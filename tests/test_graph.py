@@ -1,0 +1,182 @@
+"""Bundle adjustment (paper §3.4) on small synthetic problems with known ground truth."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+import factors
+from panosfm_graph.config import GraphConfig
+from panosfm_graph.data import LineModel, Solution
+from panosfm_graph.geometry import rotation_angle_deg
+from panosfm_graph.graph import bundle_adjust, bundle_adjust_incremental, line_extents
+from panosfm_graph.synth.problem import make_problem
+
+
+def gt_solution(p) -> Solution:
+    A = p.preprocessed.manhattan.directions[p.tracks.axis]
+    lam = factors.taylor_from_point_direction(p.gt_track_lines[:, :3], A)
+    s = np.stack([np.sum((p.gt_track_lines[:, :3] - lam) * A, 1), np.sum((p.gt_track_lines[:, 3:] - lam) * A, 1)], 1)
+    lines = LineModel(lam, A, p.tracks.axis.copy(), np.sort(s, axis=1), np.ones(p.tracks.n, bool))
+    return Solution(p.gt_R_wc.copy(), p.gt_centers.copy(), np.ones(p.n_frames, bool), lines, p.camera, True, {})
+
+
+def perturbed(p, seed=0, center_sigma=0.03, line_sigma=0.05, along=0.0, camera=None) -> Solution:
+    """GT with noisy centres and lines (first centre and floor-line heights exact: same gauge as GT)."""
+    rng = np.random.default_rng(seed)
+    g = gt_solution(p)
+    A = g.lines.direction
+    noise = rng.normal(size=g.lines.taylor.shape) * line_sigma
+    lam = factors.taylor_from_point_direction(g.lines.taylor + noise, A) + along * A
+    c = g.centers + rng.normal(size=g.centers.shape) * center_sigma
+    c[0] = g.centers[0]
+    return dataclasses.replace(g, R_wc=p.preprocessed.R_wc.copy(), centers=c, camera=camera or p.camera,
+                               lines=dataclasses.replace(g.lines, taylor=lam))
+
+
+def similarity_errors(p, sol):
+    """Returns (median centre error / trajectory diameter, median line error m) after a similarity alignment."""
+    src = np.vstack([sol.centers, sol.lines.taylor])
+    dst = np.vstack([p.gt_centers, gt_solution(p).lines.taylor])
+    ms, md = src.mean(0), dst.mean(0)
+    U, S, Vt = np.linalg.svd((dst - md).T @ (src - ms))
+    E = np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ E @ Vt
+    s = np.trace(np.diag(S) @ E) / np.sum((src - ms) ** 2)
+    al = lambda x: s * (x - ms) @ R.T + md  # noqa: E731
+    diam = np.max(np.linalg.norm(p.gt_centers[:, None] - p.gt_centers[None], axis=2))
+    ce = np.median(np.linalg.norm(al(sol.centers) - p.gt_centers, axis=1)) / diam
+    A = sol.lines.direction
+    d = al(sol.lines.taylor) - gt_solution(p).lines.taylor
+    le = np.median(np.linalg.norm(d - np.sum(d * A, 1, keepdims=True) * A, axis=1))
+    return ce, le
+
+
+@pytest.fixture(scope="module")
+def problem():
+    # IMU heading drift 0.4 deg over 40 frames (the generator's 3 deg per 300-frame spin, scaled to the clip)
+    return make_problem("living", 40, size=(480, 270), seed=1, pixel_noise_px=0.5, rot_noise_deg=0.3, imu_drift_deg=0.4)
+
+
+FAST = GraphConfig(max_iterations=15)
+
+
+def test_ba_converges_close_to_ground_truth(problem):
+    p = problem
+    init = perturbed(p)
+    sol = bundle_adjust(p.preprocessed, p.tracks, p.relations, init, FAST)
+    ce0, le0 = similarity_errors(p, init)
+    ce, le = similarity_errors(p, sol)
+    rot0 = np.median(rotation_angle_deg(p.gt_R_wc, init.R_wc))
+    rot = np.median(rotation_angle_deg(p.gt_R_wc, sol.R_wc))
+    assert ce < 0.03 and ce < 0.4 * ce0, (ce0, ce)       # centres: < 3 % of the trajectory diameter (0.67 m)
+    assert le < 0.015 and le < 0.3 * le0, (le0, le)      # lines: < 1.5 cm from 5 cm noise
+    assert rot < 0.11 and rot < 0.7 * rot0, (rot0, rot)  # rotations: 0.14 -> < 0.11 deg median
+    r = sol.residuals
+    assert r["reprojection_rms_px"] < 1.0 < r["reprojection_rms_px_initial"]
+    for name in ("phase1", "phase2", "phase3"):
+        assert r["phases"][name]["cost_after"] <= r["phases"][name]["cost_before"]
+    assert r["phases"]["phase1"]["cost_after"] < 0.01 * r["phases"]["phase1"]["cost_before"]
+    assert abs(r["focal_px"] - p.camera.K[0, 0]) < 0.01 * p.camera.K[0, 0]
+    # extents: the segments cover the GT edges' visible parts (inside the GT extent, up to noise)
+    g = gt_solution(p)
+    ok = sol.lines.valid
+    assert np.median(np.abs(sol.lines.extent[ok] - g.lines.extent[ok])) < 0.1
+    assert np.all(sol.registered) and np.all(np.isfinite(sol.centers))
+
+
+def test_focal_length_refined_in_phase3(problem):
+    p = problem
+    K = p.camera.K
+    cam = dataclasses.replace(p.camera, params=np.array([K[0, 0] * 1.03, K[1, 1] * 1.03, K[0, 2], K[1, 2]]))
+    sol = bundle_adjust(p.preprocessed, p.tracks, p.relations, perturbed(p, camera=cam), FAST)
+    assert abs(sol.camera.K[0, 0] / K[0, 0] - 1) < 0.005, sol.camera.K[0, 0]
+    assert abs(sol.camera.K[1, 1] / K[1, 1] - 1) < 0.005
+    only12 = bundle_adjust(p.preprocessed, p.tracks, p.relations, perturbed(p, camera=cam),
+                           dataclasses.replace(FAST, phases=(1, 2)))
+    assert only12.camera.K[0, 0] == pytest.approx(K[0, 0] * 1.03)
+    assert sol.residuals["reprojection_rms_px"] < only12.residuals["reprojection_rms_px"]
+
+
+@pytest.mark.parametrize("switch,counter", [
+    ("colinearity", "colinearity"), ("coplanarity_orthogonal", "orthogonal"), ("coplanarity_parallel", "parallel"),
+    ("coplanarity_junction", "junction"), ("coplanarity_floor", "floor"), ("imu_prior", "imu"),
+])
+def test_switching_a_factor_type_off_changes_graph_and_result(problem, switch, counter):
+    p = problem
+    init = perturbed(p, along=0.05)  # Lambda off its constraint: colinearity has something to do
+    cfg = dataclasses.replace(FAST, phases=(1, 2))
+    on = bundle_adjust(p.preprocessed, p.tracks, p.relations, init, cfg)
+    off = bundle_adjust(p.preprocessed, p.tracks, p.relations, init, dataclasses.replace(cfg, **{switch: False}))
+    assert on.residuals["factors"][counter] > 0
+    assert off.residuals["factors"][counter] == 0
+    if switch == "colinearity":
+        # with it Lambda is the foot of the perpendicular (A . Lambda = 0); without, A . Lambda stays free
+        assert on.residuals["colinearity_rms_m"] < 1e-3 < off.residuals["colinearity_rms_m"]
+    elif switch == "imu_prior":
+        assert np.max(rotation_angle_deg(on.R_wc, off.R_wc)) > 1e-3
+    else:
+        dc = np.max(np.linalg.norm(on.centers - off.centers, axis=1))
+        dl = np.max(np.linalg.norm(on.lines.taylor - off.lines.taylor, axis=1))
+        assert max(dc, dl) > 1e-5, (dc, dl)
+
+
+def test_reprojection_off_leaves_relations_only(problem):
+    p = problem
+    init = perturbed(p)
+    off = bundle_adjust(p.preprocessed, p.tracks, p.relations, init,
+                        dataclasses.replace(FAST, phases=(1,), reprojection=False))
+    assert off.residuals["factors"]["reprojection"] == 0
+    # without reprojection the centres have nothing to move them
+    np.testing.assert_allclose(off.centers, init.centers, atol=1e-6)
+
+
+def test_false_relations_are_rejected():
+    p = make_problem("office", 40, size=(480, 270), seed=2, pixel_noise_px=0.5, false_relation_ratio=0.1,
+                     imu_drift_deg=0.4)
+    truth = p.relation_true
+    assert np.sum(~truth) >= 10
+    sol = bundle_adjust(p.preprocessed, p.tracks, p.relations, perturbed(p), dataclasses.replace(FAST, phases=(1, 2)))
+    rej = np.array(sol.residuals["rejected_relations"], int)
+    assert sol.residuals["relations_rejected"] == len(rej)
+    n_false = np.sum(~truth)
+    caught = np.sum(~truth[rej]) if len(rej) else 0
+    assert caught >= 0.8 * n_false, (caught, n_false)
+    assert np.sum(truth[rej]) <= 0.02 * np.sum(truth) + 1
+    ce, le = similarity_errors(p, sol)
+    assert ce < 0.03 and le < 0.02
+
+
+def test_incremental_final_matches_batch(problem):
+    p = problem
+    init = perturbed(p)
+    cfg = dataclasses.replace(FAST, phases=(1, 2))
+    batch = bundle_adjust(p.preprocessed, p.tracks, p.relations, init, cfg)
+    seen = []
+    sols = bundle_adjust_incremental(p.preprocessed, p.tracks, p.relations, init, cfg, batch_frames=15,
+                                     on_batch=lambda k, s: seen.append(k))
+    assert len(sols) == 3 and seen == [0, 1, 2]
+    assert sols[0].registered.sum() == 15 and sols[-1].registered.sum() == p.n_frames
+    final = sols[-1]
+    ce_b, le_b = similarity_errors(p, batch)
+    ce_i, le_i = similarity_errors(p, final)
+    assert ce_i <= 1.1 * ce_b + 1e-3 and le_i <= 1.1 * le_b + 1e-3, (ce_b, ce_i, le_b, le_i)
+    rb, ri = batch.residuals["reprojection_rms_px"], final.residuals["reprojection_rms_px"]
+    assert abs(ri - rb) <= 0.1 * rb
+    diam = np.max(np.linalg.norm(p.gt_centers[:, None] - p.gt_centers[None], axis=2))
+    assert np.median(np.linalg.norm(final.centers - batch.centers, axis=1)) < 0.01 * diam
+
+
+def test_line_extents_recover_endpoints():
+    rng = np.random.default_rng(0)
+    K = np.array([[400.0, 0, 320], [0, 400.0, 240], [0, 0, 1]])
+    A = np.tile([1.0, 0, 0], (4, 1))
+    lam = np.tile([0.0, 0.3, 3.0], (4, 1))
+    R = np.tile(np.eye(3), (4, 1, 1))
+    C = rng.normal(size=(4, 3)) * 0.05
+    from panosfm_graph.geometry import project
+    ep = np.array([project(K, R[i], C[i], np.array([lam[i] - 0.5 * A[i], lam[i] + 0.7 * A[i]]))[0].ravel()
+                   for i in range(4)])
+    s = line_extents(lam, A, ep, R, C, K)
+    np.testing.assert_allclose(s, np.tile([-0.5, 0.7], (4, 1)), atol=1e-9)
