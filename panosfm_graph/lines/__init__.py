@@ -1,0 +1,70 @@
+"""Preprocessing (paper §3.1, supplement §1-3): line segments, Manhattan frame, rotations, tracks.
+
+``preprocess(capture, config)`` detects segments, then alternates Manhattan
+frame extraction, Manhattan labelling and rotation refinement
+``config.manhattan.iterations`` times; ``track_lines(capture, pre, config)``
+chains the Manhattan segments into tracks.
+"""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from ..config import Config
+from ..data import Capture, Preprocessed, Segments, Tracks
+from .detect import detect_segments
+from .manhattan import check_enough_manhattan, label_segments, manhattan_frame
+from .rotations import refine_rotations
+from .tracking import track_lines as _track_lines
+
+log = logging.getLogger("panosfm.lines")
+
+__all__ = [
+    "detect_segments", "manhattan_frame", "label_segments", "refine_rotations",
+    "refine_manhattan_and_rotations", "preprocess", "track_lines",
+]
+
+
+def refine_manhattan_and_rotations(segments: Segments, capture: Capture, config: Config) -> Preprocessed:
+    """Returns the Manhattan frame, segment labels and refined rotations (paper §3.1, supplement §1-2).
+
+    Starting from the IMU rotations, repeats ``config.manhattan.iterations``
+    times: Manhattan frame extraction (axes kept consistent with the
+    previous round), Manhattan labelling (85 degree rule), rotation
+    refinement (Eq. 1, warm-started); the final labels use the final
+    rotations. Raises :class:`TooFewLinesError` when the scene has too few
+    Manhattan segments.
+    """
+    K = capture.camera.K
+    R_imu = np.asarray(capture.R_wc_imu, dtype=np.float64)
+    R = R_imu.copy()
+    mf = None
+    for it in range(max(1, config.manhattan.iterations)):
+        mf = manhattan_frame(segments, K, R, config.manhattan, reference=mf)
+        labels = label_segments(segments, K, R, mf, config.manhattan)
+        check_enough_manhattan(labels, config.manhattan)
+        R = refine_rotations(segments, labels, K, R_imu, mf, config.rotation, R_wc_init=R)
+        log.info("preprocess iteration %d: %d Manhattan segments of %d", it + 1, int(np.sum(labels >= 0)), segments.n)
+    mf = manhattan_frame(segments, K, R, config.manhattan, reference=mf)
+    labels = label_segments(segments, K, R, mf, config.manhattan)
+    check_enough_manhattan(labels, config.manhattan)
+    return Preprocessed(segments=segments, manhattan=mf, labels=labels, R_wc=R, R_wc_imu=R_imu)
+
+
+def preprocess(capture: Capture, config: Config, segments: Segments | None = None) -> Preprocessed:
+    """Returns the preprocessed capture: segments, Manhattan frame, labels, refined rotations (paper §3.1).
+
+    ``segments`` skips detection when given (e.g. from a cache).
+    """
+    if segments is None:
+        segments = detect_segments(capture, config.detect)
+    return refine_manhattan_and_rotations(segments, capture, config)
+
+
+def track_lines(capture: Capture, pre: Preprocessed, config: Config) -> Tracks:
+    """Returns the line tracks of a preprocessed capture (supplement §3)."""
+    cam = capture.camera
+    return _track_lines(
+        pre.segments, pre.labels, cam.K, pre.R_wc, config.tracking, image_size=(cam.width, cam.height)
+    )

@@ -1,0 +1,188 @@
+"""Manhattan line tracking across frames (paper §3.1 'Line tracking', supplement §3)."""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from ..config import Config, TrackingConfig
+from ..data import Segments, Tracks
+
+log = logging.getLogger("panosfm.lines")
+
+
+def _tracking_config(config: Config | TrackingConfig) -> TrackingConfig:
+    return config.tracking if isinstance(config, Config) else config
+
+
+def frame_pairs(R_wc: np.ndarray, axis_angle_deg: float) -> np.ndarray:
+    """Returns (P, 2) frame pairs i < j whose optical axes are within ``axis_angle_deg`` (supplement §3)."""
+    if len(R_wc) < 2:
+        return np.zeros((0, 2), dtype=np.int64)
+    chord = 2.0 * np.sin(np.radians(axis_angle_deg) / 2.0)
+    pairs = cKDTree(R_wc[:, :, 2]).query_pairs(chord, output_type="ndarray").reshape(-1, 2)
+    return np.sort(pairs, axis=1).astype(np.int64)
+
+
+def rotation_homography(K: np.ndarray, R_wc_i: np.ndarray, R_wc_j: np.ndarray) -> np.ndarray:
+    """Returns the 3x3 homography H = K R_j^T R_i K^-1 mapping pixels of frame i to frame j (pure rotation)."""
+    return K @ R_wc_j.T @ R_wc_i @ np.linalg.inv(K)
+
+
+def _warp(H: np.ndarray, endpoints: np.ndarray) -> np.ndarray:
+    p = np.concatenate([endpoints.reshape(-1, 2), np.ones((2 * len(endpoints), 1))], axis=1) @ H.T
+    return (p[:, :2] / p[:, 2:]).reshape(-1, 4)
+
+
+def _lines(endpoints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Returns (unit directions (N, 2), homogeneous normalised lines (N, 3)) of segments."""
+    d = endpoints[:, 2:] - endpoints[:, :2]
+    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    n = np.stack([-d[:, 1], d[:, 0]], axis=1)
+    return d, np.concatenate([n, -np.sum(n * endpoints[:, :2], axis=1, keepdims=True)], axis=1)
+
+
+def match_pair(
+    ea: np.ndarray, la: np.ndarray, eb: np.ndarray, lb: np.ndarray, H: np.ndarray, dist_px: float, angle_deg: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Returns (index in a, index in b, distance px) of mutual-best segment matches between two frames.
+
+    Supplement §3: segments of frame a are warped by ``H``; a pair matches
+    when labels agree, directions differ by less than ``angle_deg`` and the
+    smallest of the four endpoint-to-other-line distances is below
+    ``dist_px``; then each keeps only its mutual best, ranked by a stricter
+    distance (the farther endpoint of the better-fitting segment from the
+    other's line) so that a nearby parallel line loses to the true one.
+    """
+    wa = _warp(H, ea.astype(np.float64))
+    da, La = _lines(wa)
+    db, Lb = _lines(eb.astype(np.float64))
+    cos = np.abs(da @ db.T)  # (A, B)
+    hom = lambda e, k: np.concatenate([e[:, 2 * k : 2 * k + 2], np.ones((len(e), 1))], axis=1)
+    eb64 = eb.astype(np.float64)
+    d_a0, d_a1 = np.abs(hom(wa, 0) @ Lb.T), np.abs(hom(wa, 1) @ Lb.T)  # a's endpoints to b's line
+    d_b0, d_b1 = np.abs(La @ hom(eb64, 0).T), np.abs(La @ hom(eb64, 1).T)  # b's endpoints to a's line
+    gate = np.minimum.reduce([d_a0, d_a1, d_b0, d_b1])  # the paper's distance
+    # ranking score: the worse endpoint of the better-fitting segment (whole segment near the other's line)
+    score = np.minimum(np.maximum(d_a0, d_a1), np.maximum(d_b0, d_b1))
+    ok = (la[:, None] == lb[None, :]) & (cos > np.cos(np.radians(angle_deg))) & (gate < dist_px)
+    cost = np.where(ok, score, np.inf)
+    if cost.size == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    best_b = np.argmin(cost, axis=1)
+    best_a = np.argmin(cost, axis=0)
+    a = np.arange(len(ea))
+    mutual = np.isfinite(cost[a, best_b]) & (best_a[best_b] == a)
+    a = a[mutual]
+    b = best_b[mutual]
+    return a, b, cost[a, b]
+
+
+def _split_conflicts(edges: np.ndarray, weights: np.ndarray, frame: np.ndarray, n: int) -> np.ndarray:
+    """Returns (n,) component ids where no component holds two segments of one frame.
+
+    Components with a conflict are rebuilt greedily: edges in ascending
+    distance are accepted only when they join components with disjoint
+    frame sets (Kruskal with a constraint; small-to-large set merging).
+    """
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    n_comp, comp = connected_components(graph, directed=False)
+    # conflicts: a (component, frame) key that appears more than once
+    key = comp.astype(np.int64) * (int(frame.max()) + 1 if n else 1) + frame
+    uniq, counts = np.unique(key, return_counts=True)
+    bad_comp = np.unique(uniq[counts > 1] // (int(frame.max()) + 1 if n else 1))
+    if len(bad_comp) == 0:
+        return comp
+    in_bad = np.isin(comp, bad_comp)
+    parent = np.arange(n)
+    frames_of: dict[int, set] = {int(s): {int(frame[s])} for s in np.flatnonzero(in_bad)}
+
+    def find(x: int) -> int:
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    sel = in_bad[edges[:, 0]]
+    order = np.argsort(weights[sel], kind="stable")
+    for s, t in edges[sel][order]:
+        rs, rt = find(int(s)), find(int(t))
+        if rs == rt:
+            continue
+        fs, ft = frames_of[rs], frames_of[rt]
+        if fs.isdisjoint(ft):
+            if len(fs) < len(ft):
+                rs, rt, fs, ft = rt, rs, ft, fs
+            parent[rt] = rs
+            fs |= ft
+            del frames_of[rt]
+    roots = np.array([find(int(s)) for s in range(n)])
+    # renumber: components without conflict keep theirs, split ones get new ids
+    out = np.where(in_bad, n_comp + roots, comp)
+    return np.unique(out, return_inverse=True)[1]
+
+
+def track_lines(
+    segments: Segments,
+    labels: np.ndarray,
+    K: np.ndarray,
+    R_wc: np.ndarray,
+    config: Config | TrackingConfig,
+    images=None,
+    image_size: tuple[int, int] | None = None,
+) -> Tracks:
+    """Returns line tracks: chains of matched Manhattan segments across frames (supplement §3).
+
+    Frame pairs whose optical axes are within ``axis_angle_deg`` are related
+    by the rotation homography K R_j^T R_i K^-1 (the refined rotations
+    replace the paper's SURF homography; ``images`` is accepted for an
+    image-based refinement and currently unused). Mutual-best matches
+    (:func:`match_pair`) are chained by connected components; a component
+    holding two segments of one frame is split greedily by match distance;
+    tracks shorter than ``min_track_length`` are dropped. ``image_size``
+    (w, h) sets the distance threshold's min(w, h); by default it is taken
+    from the principal point (image centre).
+    """
+    cfg = _tracking_config(config)
+    S = segments.n
+    track_of = np.full(S, -1, dtype=np.int32)
+    manhattan = labels >= 0
+    if S == 0 or not np.any(manhattan):
+        return Tracks(track_of=track_of, axis=np.zeros(0, dtype=np.int8))
+    if image_size is not None:
+        min_side = float(min(image_size))
+    else:
+        min_side = min(2.0 * K[0, 2] + 1.0, 2.0 * K[1, 2] + 1.0)  # principal point ~ image centre
+    dist_px = cfg.match_dist_frac * min_side
+    pairs = frame_pairs(R_wc, cfg.axis_angle_deg)
+    idx = [np.flatnonzero(manhattan[segments.of_frame(f)]) + segments.frame_offsets[f] for f in range(len(R_wc))]
+    ends, labs = segments.endpoints, labels
+    src, dst, wts = [], [], []
+    for i, j in pairs:
+        ia, ib = idx[i], idx[j]
+        if len(ia) == 0 or len(ib) == 0:
+            continue
+        H = rotation_homography(K, R_wc[i], R_wc[j])
+        a, b, d = match_pair(ends[ia], labs[ia], ends[ib], labs[ib], H, dist_px, cfg.match_angle_deg)
+        src.append(ia[a])
+        dst.append(ib[b])
+        wts.append(d)
+    if not src:
+        return Tracks(track_of=track_of, axis=np.zeros(0, dtype=np.int8))
+    edges = np.stack([np.concatenate(src), np.concatenate(dst)], axis=1)
+    weights = np.concatenate(wts)
+    comp = _split_conflicts(edges, weights, segments.frame.astype(np.int64), S)
+    size = np.bincount(comp)
+    keep = manhattan & (size[comp] >= max(cfg.min_track_length, 2))
+    ids, track = np.unique(comp[keep], return_inverse=True)
+    track_of[keep] = track
+    axis = np.zeros(len(ids), dtype=np.int8)
+    axis[track] = labels[keep]
+    log.info(
+        "%d tracks from %d matches over %d frame pairs (mean length %.1f)",
+        len(ids), len(edges), len(pairs), keep.sum() / max(len(ids), 1),
+    )
+    return Tracks(track_of=track_of, axis=axis)
