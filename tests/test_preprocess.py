@@ -290,3 +290,24 @@ def test_gt_edge_matching_is_exact_on_gt_projections():
                     frame_offsets=np.array([0, len(idx), len(idx)]), colors=np.zeros((len(idx), 3), np.uint8))
     got = gt_edge_of_segments(segs, K, gt.R_wc, gt.centers, gt.lines, tol_px=1.0)
     assert np.all(gt.line_labels[got] == gt.line_labels[idx])
+
+
+def test_bridging_reconnects_tracks_over_missed_frames(slow_pan):
+    """Track ends are linked across frames with no detection (bridge_angle_deg), keeping purity."""
+    import dataclasses
+
+    cap, pre = slow_pan
+    dropped = (pre.segments.frame % 3) == 1  # every third frame's segments are missing
+    pre_d = dataclasses.replace(pre, labels=np.where(dropped, -1, pre.labels).astype(np.int8))
+    base = with_overrides(Config(), tracking={"axis_angle_deg": 1.5, "bridge_angle_deg": 0.0})
+    bridged = with_overrides(Config(), tracking={"axis_angle_deg": 1.5, "bridge_angle_deg": 4.0})
+    ev0 = evaluate(cap, pre_d, track_lines(cap, pre_d, base), gt_px=1.5)
+    tracks = track_lines(cap, pre_d, bridged)
+    ev1 = evaluate(cap, pre_d, tracks, gt_px=1.5)
+    assert ev1["track_length_mean"] >= 1.5 * ev0["track_length_mean"], (ev0, ev1)
+    assert ev1["track_purity_mean"] >= 0.95, ev1
+    seg, off = tracks.members()
+    t_of = np.repeat(np.arange(tracks.n), np.diff(off))
+    key = t_of * cap.n_frames + pre.segments.frame[seg]
+    assert len(np.unique(key)) == len(key)  # still one segment per frame per track
+    assert not np.any(tracks.track_of[dropped] >= 0)

@@ -27,6 +27,16 @@ def frame_pairs(R_wc: np.ndarray, axis_angle_deg: float) -> np.ndarray:
     return np.sort(pairs, axis=1).astype(np.int64)
 
 
+def _bridge_pairs(R_wc: np.ndarray, bridge_angle_deg: float, base: np.ndarray) -> np.ndarray:
+    """Returns (P, 2) frame pairs i < j within ``bridge_angle_deg`` not in ``base``, by frame gap j - i then i."""
+    if bridge_angle_deg <= 0 or len(R_wc) < 2:
+        return np.zeros((0, 2), dtype=np.int64)
+    wide = frame_pairs(R_wc, bridge_angle_deg)
+    F = len(R_wc)
+    extra = wide[~np.isin(wide[:, 0] * F + wide[:, 1], base[:, 0] * F + base[:, 1])]
+    return extra[np.lexsort((extra[:, 0], extra[:, 1] - extra[:, 0]))]
+
+
 def rotation_homography(K: np.ndarray, R_wc_i: np.ndarray, R_wc_j: np.ndarray) -> np.ndarray:
     """Returns the 3x3 homography H = K R_j^T R_i K^-1 mapping pixels of frame i to frame j (pure rotation)."""
     return K @ R_wc_j.T @ R_wc_i @ np.linalg.inv(K)
@@ -142,7 +152,13 @@ def track_lines(
     image-based refinement and currently unused). Mutual-best matches
     (:func:`match_pair`) are chained by connected components; a component
     holding two segments of one frame is split greedily by match distance;
-    tracks shorter than ``min_track_length`` are dropped. ``image_size``
+    tracks shorter than ``min_track_length`` are dropped. With
+    ``bridge_angle_deg`` > 0 (a deviation: the paper's 2 degrees are ~1 frame
+    apart in a 200-frame spin, so one missed detection cuts a track), pairs
+    within that wider angle are matched too, nearest in time first, and a
+    mutual-best match (over ALL segments of both frames) is kept only between
+    a segment with no later match closer in time and one with no earlier
+    one: track ends are bridged, continued tracks are never re-linked. ``image_size``
     (w, h) sets the distance threshold's min(w, h); by default it is taken
     from the principal point (image centre).
     """
@@ -157,19 +173,35 @@ def track_lines(
     else:
         min_side = min(2.0 * K[0, 2] + 1.0, 2.0 * K[1, 2] + 1.0)  # principal point ~ image centre
     dist_px = cfg.match_dist_frac * min_side
+    F = len(R_wc)
     pairs = frame_pairs(R_wc, cfg.axis_angle_deg)
-    idx = [np.flatnonzero(manhattan[segments.of_frame(f)]) + segments.frame_offsets[f] for f in range(len(R_wc))]
+    bridges = _bridge_pairs(R_wc, cfg.bridge_angle_deg, pairs)
+    idx = [np.flatnonzero(manhattan[segments.of_frame(f)]) + segments.frame_offsets[f] for f in range(F)]
     ends, labs = segments.endpoints, labels
+    fwd_gap = np.full(S, np.iinfo(np.int64).max)  # smallest frame gap to a later matched frame
+    bwd_gap = np.full(S, np.iinfo(np.int64).max)  # ... to an earlier one
     src, dst, wts = [], [], []
-    for i, j in pairs:
-        ia, ib = idx[i], idx[j]
+
+    def match(i: int, j: int, ia: np.ndarray, ib: np.ndarray, bridge: bool = False) -> None:
         if len(ia) == 0 or len(ib) == 0:
-            continue
+            return
         H = rotation_homography(K, R_wc[i], R_wc[j])
         a, b, d = match_pair(ends[ia], labs[ia], ends[ib], labs[ib], H, dist_px, cfg.match_angle_deg)
+        if bridge:  # mutual best among ALL segments, then kept only between a track end and a track start
+            g = j - i
+            end = (fwd_gap[ia[a]] >= g) & (bwd_gap[ib[b]] >= g)
+            a, b, d = a[end], b[end], d[end]
         src.append(ia[a])
         dst.append(ib[b])
         wts.append(d)
+        np.minimum.at(fwd_gap, ia[a], j - i)
+        np.minimum.at(bwd_gap, ib[b], j - i)
+
+    for i, j in pairs:
+        match(int(i), int(j), idx[i], idx[j])
+    # bridges, nearest in time first: only segments not yet continued within the gap take part
+    for i, j in bridges:
+        match(int(i), int(j), idx[i], idx[j], bridge=True)
     if not src:
         return Tracks(track_of=track_of, axis=np.zeros(0, dtype=np.int8))
     edges = np.stack([np.concatenate(src), np.concatenate(dst)], axis=1)
