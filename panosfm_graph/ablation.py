@@ -87,7 +87,9 @@ def run_ablation(capture_dir: str | Path, out_dir: str | Path, sets: str | list[
             row["metrics"] = None
             log.warning("no evaluation for %s: %s", name, exc)
         rows[name] = row
-    (out_dir / "ablation.json").write_text(json.dumps(rows, indent=2, default=float))
+    from .export import to_jsonable
+
+    (out_dir / "ablation.json").write_text(json.dumps(to_jsonable(rows), indent=2))
     table = format_ablation(rows)
     (out_dir / "ablation.md").write_text(table + "\n")
     tiles = []

@@ -11,7 +11,8 @@ initial rotation and as a relative-rotation prior).
 Every problem with the input raises :class:`~panosfm_graph.errors.InputError`
 with one line naming the file. :func:`inspect_capture` describes a capture
 (also one whose IMU does not cover its frames) and :func:`format_inspection`
-prints that as a table.
+prints that as a table. :func:`capture_warnings` checks a loaded capture as a
+spin to reconstruct (IMU turn span, dropped frames); the pipeline calls it.
 """
 from __future__ import annotations
 
@@ -44,6 +45,9 @@ DEFAULT_FPS = 30.0
 QUAT_NORM_TOL = 1e-3  # |‖q‖ - 1| above this is rejected
 TIME_TOL_S = 1e-6  # frames this close outside the IMU span still count as covered
 SEEK_AHEAD_FRAMES = 48  # read forward sequentially up to this many frames instead of seeking
+FOCAL_RANGE_FRAC = (0.2, 10.0)  # plausible focal length, as a fraction of the image width
+PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"  # the IEND chunk every complete PNG ends with
+JPEG_TAIL_BYTES = 1024  # a complete JPEG has its end-of-image marker (FF D9) this close to its end
 # pixels as stored: EXIF orientation is ignored so that frames agree with their header and camera.json
 _IMREAD_FLAGS = cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION
 AXIS_LABELS = {"x": 0, "y": 1, "z": 2, "0": 0, "1": 1, "2": 2, "-1": -1}
@@ -86,6 +90,15 @@ def read_camera(path: str | Path) -> tuple[Camera, float | None]:
     n_intr = 3 if model == "SIMPLE_PINHOLE" else 4
     if np.any(params[:n_intr] <= 0):
         raise InputError(f"focal lengths and principal point must be positive, got {params[:n_intr].tolist()}", path)
+    w, h = size
+    focal = params[:1] if model == "SIMPLE_PINHOLE" else params[:2]
+    lo, hi = FOCAL_RANGE_FRAC
+    if np.any(focal < lo * w) or np.any(focal > hi * w):
+        raise InputError(f"focal length {', '.join(f'{f:g}' for f in focal)} px is implausible for a {w} px wide "
+                         f"image (expected {lo:g}..{hi:g} x width = {lo * w:g}..{hi * w:g} px)", path)
+    cx, cy = params[1:3] if model == "SIMPLE_PINHOLE" else params[2:4]
+    if not (-0.5 <= cx <= w - 0.5 and -0.5 <= cy <= h - 0.5):
+        raise InputError(f"principal point ({cx:g}, {cy:g}) lies outside the {w}x{h} image", path)
     fps = data.get("fps")
     if fps is not None:
         if not _is_number(fps) or not math.isfinite(fps) or fps <= 0:
@@ -357,6 +370,31 @@ def _image_size(path: Path) -> tuple[int, int] | None:
         return None
 
 
+def _image_truncated(path: Path) -> str | None:
+    """Returns why a PNG or JPEG file is cut short (its end marker missing), or None when it ends properly.
+
+    Reads only the file's last bytes: a PNG must end with its IEND chunk, a
+    JPEG must have its end-of-image marker (FF D9) within its last
+    :data:`JPEG_TAIL_BYTES` bytes. Corruption inside a complete file is found
+    when the frame is decoded (the reader then raises InputError naming it).
+    """
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as f:
+            head = f.read(8)
+            f.seek(max(0, size - JPEG_TAIL_BYTES))
+            tail = f.read()
+    except OSError as e:
+        return f"cannot be read ({e.strerror})"
+    if size == 0:
+        return "is empty (0 bytes)"
+    if head[:8] == b"\x89PNG\r\n\x1a\n":
+        return None if tail.endswith(PNG_END) else f"is truncated ({size} bytes, no PNG IEND chunk at the end)"
+    if head[:2] == b"\xff\xd8":
+        return None if b"\xff\xd9" in tail else f"is truncated ({size} bytes, no JPEG end-of-image marker)"
+    return None
+
+
 def _list_images(folder: Path) -> list[Path]:
     try:
         entries = sorted(os.listdir(folder))
@@ -393,6 +431,9 @@ def _read_source(root: Path, camera: Camera, camera_json: Path) -> _Source:
         if video is not None:
             log.info("%s: both frames/ and %s, using frames/", root, video.name)
         for p in images:
+            problem = _image_truncated(p)
+            if problem is not None:
+                raise InputError(problem, p)
             size = _image_size(p)
             if size is None:
                 img = cv2.imread(str(p), _IMREAD_FLAGS)
@@ -637,6 +678,74 @@ def imu_coverage(t_imu: np.ndarray, t_frames: np.ndarray) -> np.ndarray:
     return (t_frames >= t_imu[0] - TIME_TOL_S) & (t_frames <= t_imu[-1] + TIME_TOL_S)
 
 
+def check_imu_rate(imu_path: Path, t_imu: np.ndarray, frame_rate_hz: float, min_rate_hz: float) -> float:
+    """Returns the IMU's mean rate (Hz); InputError when it is below ``min_rate_hz`` and half the frame rate.
+
+    One IMU row per frame is always accepted (capture-format.md allows it);
+    a stream much sparser than the frames cannot give each frame its own
+    attitude (paper supplement §2 uses it as every frame's initial rotation).
+    """
+    span = float(t_imu[-1] - t_imu[0])
+    rate = (len(t_imu) - 1) / span if span > 0 else math.inf
+    if rate < min_rate_hz and rate < 0.5 * frame_rate_hz:
+        raise InputError(f"IMU rate {rate:.3g} Hz is far below the frame rate {frame_rate_hz:.3g} Hz "
+                         f"(need >= {min_rate_hz:g} Hz or one row per frame)", imu_path)
+    return rate
+
+
+def turn_span_deg(R_wc: np.ndarray) -> float:
+    """Returns the yaw span (degrees) swept by the optical axis: max - min of its unwrapped heading.
+
+    The heading is the azimuth of the optical axis (``R_wc[:, :, 2]``)
+    projected on the horizontal plane (world +z is up, capture-format.md);
+    frames looking within ~12° of straight up or down carry no heading and
+    are skipped.
+    """
+    z = np.asarray(R_wc, dtype=np.float64)[:, :, 2]
+    ok = np.hypot(z[:, 0], z[:, 1]) > 0.2
+    if ok.sum() < 2:
+        return 0.0
+    heading = np.unwrap(np.arctan2(z[ok, 1], z[ok, 0]))
+    return float(np.degrees(np.ptp(heading)))
+
+
+def capture_warnings(capture: Capture, config: CaptureConfig | Config = CaptureConfig()) -> list[str]:
+    """Returns the warnings about a loaded capture as a spin to reconstruct (also logged); InputError if hopeless.
+
+    * the IMU yaw span over the taken frames (:func:`turn_span_deg`) below
+      ``config.min_turn_deg``: InputError (no turn to reconstruct); below
+      ``config.full_turn_deg``: a warning, the result covers part of the room;
+    * dropped frames: a timestamp gap longer than ``config.max_gap_intervals``
+      median frame intervals (a warning: the frames on both sides are still
+      used, but tracking across the gap is weaker).
+    """
+    config = getattr(config, "capture", config)
+    imu_path = Path(capture.root) / "imu.csv"
+    warnings: list[str] = []
+    n = capture.n_frames
+    span = turn_span_deg(capture.R_wc_imu)
+    if span < config.min_turn_deg:
+        raise InputError(f"the IMU heading turns only {span:.1f} deg over the {n} frames; a spin capture needs at "
+                         f"least {config.min_turn_deg:g} deg (ideally a full turn)", imu_path)
+    if span < config.full_turn_deg:
+        warnings.append(f"{imu_path}: partial turn: the IMU heading spans {span:.1f} deg (< "
+                        f"{config.full_turn_deg:g} deg): the reconstruction covers only part of the room")
+    t = np.asarray(capture.timestamps, dtype=np.float64)
+    if n >= 3:
+        dt = np.diff(t)
+        med = float(np.median(dt))
+        gaps = np.flatnonzero(dt > config.max_gap_intervals * med)
+        if len(gaps):
+            k = int(gaps[np.argmax(dt[gaps])])
+            warnings.append(f"{capture.root}: {len(gaps)} gap(s) in the frame timestamps longer than "
+                            f"{config.max_gap_intervals:g} frame intervals ({med * 1e3:.1f} ms), e.g. "
+                            f"{dt[k]:.3f} s between {capture.frame_names[k]} and {capture.frame_names[k + 1]} "
+                            f"(dropped frames?)")
+    for w in warnings:
+        log.warning("%s", w)
+    return warnings
+
+
 def load_capture(path: str | Path, config: CaptureConfig | Config = CaptureConfig()) -> Capture:
     """Returns the validated :class:`Capture` of a capture directory (``capture-format.md``).
 
@@ -655,7 +764,8 @@ def load_capture(path: str | Path, config: CaptureConfig | Config = CaptureConfi
     imu_path = root / "imu.csv"
     t_imu, R_imu = read_imu(imu_path)
     source = _read_source(root, raw_camera, camera_json)
-    t_all, t_from, _ = _timestamps(root, source, fps)
+    t_all, t_from, frame_rate = _timestamps(root, source, fps)
+    check_imu_rate(imu_path, t_imu, frame_rate, config.min_imu_rate_hz)
 
     take = np.arange(0, len(source.names), config.every_k)
     if config.max_frames is not None:
@@ -698,11 +808,13 @@ def inspect_capture(path: str | Path) -> dict[str, Any]:
     root = _root(path)
     camera_json = root / "camera.json"
     camera, fps = read_camera(camera_json)
-    t_imu, _ = read_imu(root / "imu.csv")
+    t_imu, R_imu = read_imu(root / "imu.csv")
     source = _read_source(root, camera, camera_json)
     t, t_from, rate = _timestamps(root, source, fps)
     inside = imu_coverage(t_imu, t)
     problems = []
+    during = (t_imu >= t[0] - TIME_TOL_S) & (t_imu <= t[-1] + TIME_TOL_S) if len(t) else np.zeros(0, bool)
+    turn = turn_span_deg(R_imu[during]) if during.sum() >= 2 else turn_span_deg(R_imu)
     if not inside.all():
         out = t[~inside]
         problems.append(f"imu.csv: {int((~inside).sum())} of {len(t)} frames (times {out.min():.3f}.."
@@ -740,6 +852,7 @@ def inspect_capture(path: str | Path) -> dict[str, Any]:
             "rows": len(t_imu),
             "rate_hz": round((len(t_imu) - 1) / imu_span, 3),
             "time_span_s": [float(t_imu[0]), float(t_imu[-1])],
+            "turn_deg": round(turn, 2),
             "coverage": {"frames_inside": int(inside.sum()), "frames_outside": int((~inside).sum()),
                          "fraction": float(inside.mean()) if len(inside) else 0.0},
         },
@@ -763,7 +876,7 @@ def format_inspection(info: dict[str, Any]) -> str:
         ("fps", f"{info['fps']:g} (timestamps from {info['timestamps_from']})"),
         ("duration", f"{info['duration_s']:.3f} s  ({span[0]:.3f} .. {span[1]:.3f} s)"),
         ("IMU", f"{imu['rows']} rows, {imu['rate_hz']:g} Hz, {imu['time_span_s'][0]:.3f} .. "
-                f"{imu['time_span_s'][1]:.3f} s"),
+                f"{imu['time_span_s'][1]:.3f} s, heading turns {imu.get('turn_deg', 0.0):g} deg"),
         ("IMU coverage", f"{cov['frames_inside']} of {info['frames']} frames ({100 * cov['fraction']:.1f}%)"),
     ]
     gt = info["ground_truth"]

@@ -103,6 +103,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     result = run_demo(args.out, scene=args.scene, n_frames=args.frames, size=args.size, seed=args.seed,
                       config=config_from_args(args), spawn=args.spawn)
     print(result.report())
+    if "eval" in result.summary:
+        from .evaluate import format_metrics
+
+        print("\nagainst the synthetic ground truth:\n" + format_metrics(result.summary["eval"]))
+    print(f"\nviews: {result.out_dir / 'views'}/{{quarter,height,topdown}}.png; "
+          f"recording: panosfm view {result.out_dir}")
     return 0
 
 
@@ -131,7 +137,9 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     text = format_metrics(metrics)
     print(text)
     if args.json:
-        Path(args.json).write_text(json.dumps(metrics, indent=2, default=float))
+        from .export import to_jsonable
+
+        Path(args.json).write_text(json.dumps(to_jsonable(metrics), indent=2))
     return 0
 
 
@@ -173,7 +181,7 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo", help="synthesise a small capture and reconstruct it")
     d.add_argument("out", help="output directory (capture/ and reconstruction/ go inside)")
     d.add_argument("--scene", default="living")
-    d.add_argument("--frames", type=int, default=120)
+    d.add_argument("--frames", type=int, default=300)
     d.add_argument("--size", type=_parse_size, default=(640, 360))
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--spawn", action="store_true", help="open the rerun viewer live")
@@ -231,7 +239,8 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     except OSError as exc:
         if exc.errno in (errno.ENOSPC, errno.EACCES, errno.EROFS, errno.ENOTDIR, errno.EEXIST, errno.EDQUOT):
-            where = f"{exc.filename}: " if exc.filename else ""
+            target = exc.filename or getattr(args, "out", None)  # a failed write() carries no file name
+            where = f"{target}: " if target else ""
             print(f"panosfm: error: {where}{exc.strerror}", file=sys.stderr)
             return EXIT_BAD_INPUT
         raise

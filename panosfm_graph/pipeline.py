@@ -202,9 +202,15 @@ def _detect(capture: Capture, config: Config) -> Segments:
 
 
 def _preprocess(capture: Capture, segments: Segments, config: Config) -> Preprocessed:
+    from .errors import TooFewLinesError
     from .lines import refine_manhattan_and_rotations
 
-    return refine_manhattan_and_rotations(segments, capture, config)
+    try:
+        return refine_manhattan_and_rotations(segments, capture, config)
+    except TooFewLinesError as e:  # name the capture: the one line the user sees must say which input
+        if e.path is not None:
+            raise
+        raise TooFewLinesError(str(e), capture.root) from None
 
 
 def _track(capture: Capture, pre: Preprocessed, config: Config) -> Tracks:
@@ -319,7 +325,7 @@ def _export(tmp: Path, capture: Capture, segments: Segments, result: RunResult, 
     write_summary(tmp / "summary.json", summary)
 
 
-def run_demo(out_dir: str | Path, *, scene: str = "living", n_frames: int = 120,
+def run_demo(out_dir: str | Path, *, scene: str = "living", n_frames: int = 300,
              size: tuple[int, int] = (640, 360), seed: int = 0, config: Config = Config(),
              spawn: bool = False) -> RunResult:
     """Returns the result of synthesising a small capture into ``out/capture`` and reconstructing it.
@@ -327,7 +333,7 @@ def run_demo(out_dir: str | Path, *, scene: str = "living", n_frames: int = 120,
     The demo gives the camera height (metric scale) and scores the result
     against the synthetic ground truth (``out/reconstruction/eval.json``).
     """
-    from .evaluate import evaluate_reconstruction, format_metrics
+    from .evaluate import evaluate_reconstruction
     from .synth import synthesize
 
     out_dir = Path(out_dir)
@@ -353,7 +359,8 @@ def run_demo(out_dir: str | Path, *, scene: str = "living", n_frames: int = 120,
         config = dataclasses.replace(config, linear=dataclasses.replace(config.linear, camera_height_m=height))
     result = run_pipeline(cap_dir, out_dir / "reconstruction", config, spawn=spawn, resume=True)
     metrics = evaluate_reconstruction(cap_dir, out_dir / "reconstruction")
-    (out_dir / "reconstruction" / "eval.json").write_text(json.dumps(metrics, indent=2, default=float))
+    from .export import to_jsonable
+
+    (out_dir / "reconstruction" / "eval.json").write_text(json.dumps(to_jsonable(metrics), indent=2))
     result.summary["eval"] = metrics
-    log.info("\n%s", format_metrics(metrics))
     return result

@@ -60,7 +60,9 @@ def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peer
             entry[f"colmap-{mapper}"] = _score(pdir, cap, code, secs, err, evaluate_reconstruction)
             print(f"[{scene}] colmap-{mapper}: {_line(entry[f'colmap-{mapper}'])}", flush=True)
         record["scenes"][scene] = entry
-    (out / "bench.json").write_text(json.dumps(record, indent=2, default=float))
+    from panosfm_graph.export import to_jsonable
+
+    (out / "bench.json").write_text(json.dumps(to_jsonable(record), indent=2))
     md = format_bench(record)
     (out / "bench.md").write_text(md + "\n")
     print(md)
