@@ -505,12 +505,14 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
-def recover_output_dir(out_dir: str | Path) -> None:
+def recover_output_dir(out_dir: str | Path, keep: tuple[str, ...] = ()) -> None:
     """Returns nothing; repairs what an interrupted :func:`atomic_output_dir` left next to ``out_dir``.
 
     A backup with ``out_dir`` missing is the previous complete result: renamed back.
     A backup with ``out_dir`` present is stale: removed. Temporary directories of
-    processes that no longer run are incomplete results: removed.
+    processes that no longer run are incomplete results: removed, after their
+    ``keep`` entries (the stage cache, moved in just before the swap) are moved
+    back into ``out_dir``.
     """
     out_dir = Path(out_dir)
     backup = _backup_path(out_dir)
@@ -528,6 +530,10 @@ def recover_output_dir(out_dir: str | Path) -> None:
             except (IndexError, ValueError):
                 continue
             if tmp.is_dir() and pid != os.getpid() and not _pid_alive(pid):
+                for name in keep:
+                    if (tmp / name).exists() and not (out_dir / name).exists():
+                        out_dir.mkdir(exist_ok=True)
+                        os.rename(tmp / name, out_dir / name)
                 shutil.rmtree(tmp, ignore_errors=True)
 
 
@@ -567,7 +573,7 @@ def check_output_dir(out_dir: str | Path, keep: tuple[str, ...] = ()) -> Path:
         raise InputError(f"cannot create the output's parent directory ({e.strerror})", parent) from None
     if not os.access(parent, os.W_OK | os.X_OK):
         raise InputError("output's parent directory is not writable", parent)
-    recover_output_dir(out_dir)
+    recover_output_dir(out_dir, keep)
     if out_dir.is_dir() and not _looks_like_result(out_dir, keep):
         raise InputError("output directory exists, is not empty and is not a panosfm reconstruction; refusing to replace it", out_dir)
     return out_dir

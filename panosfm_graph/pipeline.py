@@ -164,7 +164,7 @@ def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config =
                                     lambda: _track(capture, pre, config), timings, resumed)
             key_tracks = key
         if result.tracks is not None and not done("track"):
-            key_normals = stable_hash(key_pre, config.normals)
+            key_normals = stable_hash(key_pre, config.normals, _normal_model_identity(config))
             normals = _cached(cache, "normals", key_normals, NormalMaps,
                               lambda: _normals(capture, pre, config), timings, resumed)
             key = stable_hash(key_tracks, key_normals, config.relations)
@@ -191,6 +191,20 @@ def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config =
             _export(tmp, capture, segments, result, summary, rerun=rerun, spawn=spawn, views=views)
     result.summary = summary
     return result
+
+
+def _normal_model_identity(config: Config) -> str | None:
+    """Returns size and mtime of the ONNX model the normals stage would run (part of its cache key)."""
+    if config.normals.source != "model":
+        return None
+    from .normals.onnx import SHIPPED_MODEL
+
+    path = Path(config.normals.model_path) if config.normals.model_path else Path(SHIPPED_MODEL)
+    try:
+        st = path.stat()
+    except OSError:
+        return f"{path}:missing"
+    return f"{path.resolve()}:{st.st_size}:{st.st_mtime_ns}"
 
 
 # --- stage adapters: plain calls into the stage modules -------------------------------------------

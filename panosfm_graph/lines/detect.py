@@ -4,7 +4,6 @@ from __future__ import annotations
 import logging
 import os
 from collections import deque
-from concurrent.futures import ProcessPoolExecutor
 
 import cv2
 import numpy as np
@@ -14,6 +13,7 @@ from scipy.spatial import cKDTree
 
 from ..config import Config, DetectConfig
 from ..data import Capture, Segments
+from ..parallel import process_pool
 from ..progress import progress
 
 log = logging.getLogger("panosfm.lines")
@@ -153,7 +153,7 @@ def detect_segments(capture: Capture, config: Config | DetectConfig) -> Segments
         # a sliding window of in-flight frames: read lazily, never all held in memory
         window = 4 * workers
         pending: deque = deque()
-        with ProcessPoolExecutor(max_workers=workers) as pool:
+        with process_pool(workers) as pool:
             for i in progress(range(n), "lines", total=n):
                 pending.append(pool.submit(detect_frame, capture.frame(i), cfg, K, dist))
                 if len(pending) > window:

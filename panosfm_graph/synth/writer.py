@@ -22,11 +22,11 @@ from __future__ import annotations
 
 import json
 import logging
-import multiprocessing as mp
+
 import os
 import shutil
 import tempfile
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from pathlib import Path
 
 import cv2
@@ -34,6 +34,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry import matrix_to_quat_wxyz
+from ..parallel import process_pool
 from ..progress import progress
 from .render import intrinsics, render_frame
 from .scenes import SCENES, Scene, make_scene
@@ -159,9 +160,7 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
             for a in progress(args, "synth frames"):
                 _render_chunk(*a)
         else:
-            # fork: no re-import of the caller's __main__ (works from scripts without a main guard)
-            ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
-            with ProcessPoolExecutor(max_workers=min(int(workers), len(chunks)), mp_context=ctx) as ex:
+            with process_pool(min(int(workers), len(chunks))) as ex:
                 futures = [ex.submit(_render_chunk, *a) for a in args]
                 for f in progress(as_completed(futures), "synth frames", total=len(futures)):
                     f.result()
