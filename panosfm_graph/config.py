@@ -69,6 +69,7 @@ class TrackingConfig:
     match_dist_frac: float = 0.05  # smallest endpoint-to-line distance < this * min(w, h)
     match_angle_deg: float = 1.0  # angle difference between matched segments
     min_track_length: int = 2  # tracks with fewer segments are dropped
+    bridge_angle_deg: float = 0.0  # >0: also link track ENDS across frames whose axes are within this (0: paper)
 
 
 @dataclass(frozen=True)
@@ -93,6 +94,9 @@ class RelationsConfig:
     junction_dist_frac: float = 0.1  # endpoints within this * min(w, h)
     floor_normal_deg: float = 25.0  # floor pixels: normal within this of vertical
     max_pair_dist_frac: float = 0.5  # candidate pairs for quad tests: midpoints within this * min(w, h)
+    # junction checks beyond the paper (0 / False: the paper's endpoint test only)
+    junction_corner_frac: float = 0.03  # both endpoints within this * min(w, h) of the lines' intersection (an L)
+    junction_normals: bool = True  # the quad inside the L passes the orthogonal normal test too
 
 
 @dataclass(frozen=True)
@@ -108,6 +112,9 @@ class LinearConfig:
     min_view_eig: float = 0.02  # register a frame only if its lines' interpretation-plane normals span 3D this well
     robust_iterations: int = 0  # IRLS rounds (Cauchy) on coplanarity rows against wrong relations; 0 = paper (plain LS)
     robust_k: float = 2.385  # Cauchy constant, in robust sigmas (1.4826 * median |residual|)
+    motion_weight: float = 0.0  # body-motion prior on consecutive centres (rows in m, like colinearity); 0 = paper
+    motion_order: int = 2  # 2: T_a - 2 T_b + T_c ~ 0 (smooth velocity); 1: T_a - T_b ~ 0
+    motion_max_gap: int = 3  # frames: no motion row across a larger gap between registered frames
 
 
 @dataclass(frozen=True)
@@ -131,6 +138,10 @@ class GraphConfig:
     max_iterations: int = 30
     reject_sigma: float = 5.0  # drop relations whose residual exceeds this many sigmas, then resolve
     incremental_batch: int | None = None  # frames per batch for incremental solves
+    rotation_prior_sigma_deg: float = 0.03  # phases >= 2: absolute prior at the preprocessed (vanishing-point) R_wc; 0 = off
+    focal_max_sigma_frac: float = 0.002  # phase 3 refines the focal only if its marginal std is below this share of it
+    max_line_sigma_m: float = 0.1  # lines whose position std (from their factors) exceeds this are marked invalid
+    max_center_sigma_m: float = 0.1  # frames whose centre std (from their observations) exceeds this are unregistered
 
 
 @dataclass(frozen=True)

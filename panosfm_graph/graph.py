@@ -149,7 +149,7 @@ def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase:
     """Returns (graph, factor counts by type) for one phase; ``rel_mask`` selects relations of ``prob.rel_idx``."""
     graph = gtsam.NonlinearFactorGraph()
     counts = {"reprojection": 0, "colinearity": 0, "orthogonal": 0, "parallel": 0, "junction": 0, "floor": 0,
-              "imu": 0, "prior": 0}
+              "imu": 0, "rotation_prior": 0, "prior": 0}
     ep = pre.segments.endpoints.astype(np.float64)
     rel_sigma = _relation_sigma(config)
     if config.reprojection and len(prob.obs_seg):
@@ -169,7 +169,7 @@ def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase:
                     noise_cache[n],
                     rotation_keys=[rotation_key(i) for i in fr] if phase >= 2 else None,
                     R_wc_fixed=R_fixed[fr] if phase < 2 else None,
-                    focal_key=FOCAL_KEY if phase >= 3 else None))
+                    focal_key=FOCAL_KEY if phase >= 3 and gauge.get("focal_free", True) else None))
                 counts["reprojection"] += 1
     if config.colinearity:
         for t in prob.lines:
@@ -187,6 +187,11 @@ def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase:
             graph.add(factors.coplanarity_factor_builtin(line_key(relations.track_a[r]), line_key(relations.track_b[r]),
                                                          normal, sig[r], config.robust, config.robust_k))
         counts[("orthogonal", "parallel", "junction", "floor")[kind]] += 1
+    if phase >= 2 and config.rotation_prior_sigma_deg > 0 and "R_prior" in gauge:
+        noise = gtsam.noiseModel.Isotropic.Sigma(3, float(np.radians(config.rotation_prior_sigma_deg)))
+        for i in prob.rot_frames:
+            graph.add(gtsam.PriorFactorRot3(rotation_key(i), gauge["R_prior"][i], noise))
+            counts["rotation_prior"] += 1
     if phase >= 2 and config.imu_prior and len(prob.rot_frames) > 1:
         fr = prob.rot_frames
         for i, j in zip(fr[:-1], fr[1:]):
@@ -203,7 +208,7 @@ def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase:
         graph.add(factors.plane_offset_factor(line_key(gauge["scale_line"]), center_key(gauge["first"]),
                                               gauge["scale_normal"], gauge["scale_offset"], tight(1)))
     counts["prior"] += 1
-    if phase >= 3:
+    if phase >= 3 and gauge.get("focal_free", True):
         graph.add(gtsam.PriorFactorVector(FOCAL_KEY, np.array([K[0, 0]]),
                                           gtsam.noiseModel.Isotropic.Sigma(1, FOCAL_PRIOR_FRAC * K[0, 0])))
         counts["prior"] += 1
@@ -377,6 +382,7 @@ def bundle_adjust(pre: Preprocessed, tracks: Tracks, relations: Relations, initi
     for t in prob.lines:
         values.insert(line_key(t), np.asarray(initial.lines.taylor[t], dtype=np.float64))
     gauge = _gauge(relations, prob, initial, pre.manhattan.directions)
+    gauge["R_prior"] = {int(i): gtsam.Rot3(_orthonormal(R_wc[i])) for i in prob.rot_frames}
     residuals: dict = {"phases": {}, "factors": {}}
     rel_mask = np.ones(len(prob.rel_idx), bool)
     floor_used = bool(np.any(relations.kind[prob.rel_idx] == FLOOR))
@@ -394,8 +400,15 @@ def bundle_adjust(pre: Preprocessed, tracks: Tracks, relations: Relations, initi
             for i in prob.rot_frames:
                 if not values.exists(rotation_key(i)):
                     values.insert(rotation_key(i), gtsam.Rot3(_orthonormal(R_wc[i])))
-        if phase >= 3 and not values.exists(FOCAL_KEY):
+        if phase >= 3 and not values.exists(FOCAL_KEY) and "focal_free" not in gauge:
             values.insert(FOCAL_KEY, np.array([K[0, 0]]))
+            sigma_f = focal_sigma(pre, relations, prob, R_wc, K, rel_mask, config, gauge, values)
+            gauge["focal_free"] = bool(sigma_f <= config.focal_max_sigma_frac * K[0, 0])
+            residuals["focal_sigma_px"] = float(sigma_f)
+            residuals["focal_refined"] = gauge["focal_free"]
+            if not gauge["focal_free"]:
+                log.info("BA phase 3: focal length not determined (std %.3g px): kept at %.1f px", sigma_f, K[0, 0])
+                values.erase(FOCAL_KEY)
         rounds = MAX_REJECT_ROUNDS if phase == last else 0
         for rnd in range(rounds + 1):
             graph, counts = _build_graph(pre, relations, prob, phase, R_wc, K, rel_mask, config, gauge)
@@ -423,7 +436,7 @@ def bundle_adjust(pre: Preprocessed, tracks: Tracks, relations: Relations, initi
         if phase >= 2:
             for i in prob.rot_frames:
                 R_wc[i] = values.atRot3(rotation_key(i)).matrix()
-        if phase >= 3:
+        if phase >= 3 and values.exists(FOCAL_KEY):
             camera = _camera_with_focal(initial.camera, values.atVector(FOCAL_KEY)[0])
             K = camera.K
     residuals["relations_used"] = int(rel_mask.sum())
@@ -432,9 +445,123 @@ def bundle_adjust(pre: Preprocessed, tracks: Tracks, relations: Relations, initi
     residuals["focal_px"] = float(camera.K[0, 0])
     sol = _solution(pre, tracks, initial, prob, values, R_wc, camera, residuals)
     residuals["reprojection_rms_px"] = _reprojection_rms(pre, prob, sol.lines.taylor, sol.R_wc, sol.centers, camera.K)
+    sol = _mark_undetermined(pre, relations, prob, rel_mask, sol, config, values)
     if values.exists(FLOOR_KEY):
         residuals["floor_height"] = float(values.atVector(FLOOR_KEY)[0])
     return sol
+
+
+def focal_sigma(pre: Preprocessed, relations: Relations, prob: _Problem, R_wc: np.ndarray, K: np.ndarray,
+                rel_mask: np.ndarray, config: GraphConfig, gauge: dict, values: gtsam.Values) -> float:
+    """Returns the marginal std (px) of the focal length in the phase-3 graph at ``values`` (inf if indeterminate).
+
+    The focal is refined (paper §3.4, phase 3) only where the images determine
+    it (reprojection, colinearity, IMU and priors; relations are left out: with
+    their weight 1e4 they pin it to whatever the possibly wrong structure says): a spin seen by a level camera barely constrains it (the vertical
+    vanishing point is at infinity and the focal trades off against the
+    rotation angles), and an undetermined focal drifts with the smallest bias
+    (measured: 512 -> 520 px, lines 3 cm -> 23 cm from the true surfaces).
+    Weak priors (10 m, 1 rad) on every other variable keep the marginal
+    computable when some line is undetermined; they do not change the focal's.
+    """
+    g = dict(gauge, focal_free=True)
+    graph, _ = _build_graph(pre, relations, prob, 3, R_wc, K, np.zeros_like(rel_mask), config, g)
+    weak3 = gtsam.noiseModel.Isotropic.Sigma(3, 10.0)
+    weak_r = gtsam.noiseModel.Isotropic.Sigma(3, 1.0)
+    for k in values.keys():
+        ch = chr(gtsam.Symbol(k).chr())
+        if ch in "cl":
+            graph.add(gtsam.PriorFactorPoint3(k, values.atPoint3(k), weak3))
+        elif ch == "r":
+            graph.add(gtsam.PriorFactorRot3(k, values.atRot3(k), weak_r))
+    try:
+        cov = gtsam.Marginals(graph, values).marginalCovariance(FOCAL_KEY)
+    except RuntimeError:
+        return float("inf")
+    return float(np.sqrt(max(cov[0, 0], 0.0)))
+
+
+def determinacy(pre: Preprocessed, relations: Relations, prob: _Problem, rel_used: np.ndarray, taylor: np.ndarray,
+                R_wc: np.ndarray, centers: np.ndarray, K: np.ndarray, config: GraphConfig,
+                floor_h: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Returns (line std (T,) m, centre std (F,) m): how well each line's position and each centre are determined.
+
+    Gauss-Newton information of one variable with all others held: a
+    reprojected line moved by delta along the unit normal u of its
+    interpretation plane moves by ``f delta / d`` pixels (d: camera-to-line
+    distance), so each observation adds ``(f / d / sigma_px)^2 u u^T`` to the
+    line's and to the frame centre's 3x3 information; each used relation
+    (robust weight at its residual) adds ``n n^T / sigma^2`` to its lines.
+    The std is ``1 / sqrt`` of the smallest eigenvalue (for lines, in the plane
+    normal to the line's direction: the position along it is not a quantity).
+    Frames without observations get inf.
+    """
+    T, F = len(prob.directions), len(centers)
+    H_l = np.zeros((T, 3, 3))
+    H_c = np.zeros((F, 3, 3))
+    if len(prob.obs_seg):
+        t, f = prob.obs_track, prob.obs_frame
+        w = np.cross(taylor[t] - centers[f], prob.directions[t])
+        d = np.linalg.norm(w, axis=1)
+        ok = np.isfinite(d) & (d > 1e-9)
+        u = w[ok] / d[ok, None]
+        g = (K[0, 0] / d[ok] / config.reprojection_sigma_px) ** 2
+        outer = g[:, None, None] * u[:, :, None] * u[:, None, :]
+        np.add.at(H_l, t[ok], outer)
+        np.add.at(H_c, f[ok], outer)
+    r = prob.rel_idx[rel_used]
+    if len(r):
+        sub = Relations(*(np.asarray(getattr(relations, fl.name))[r] for fl in dataclasses.fields(Relations)))
+        sig = relation_sigmas(sub, config)
+        white = np.abs(relation_residuals(sub, pre.manhattan.directions, taylor, floor_h)) / sig
+        wgt = factors.robust_weight(white, config.robust, config.robust_k) / sig**2
+        n = pre.manhattan.directions[sub.normal_axis.astype(int)]
+        outer = wgt[:, None, None] * n[:, :, None] * n[:, None, :]
+        np.add.at(H_l, sub.track_a, outer)
+        pair = sub.kind != FLOOR
+        np.add.at(H_l, sub.track_b[pair], outer[pair])
+    A = prob.directions
+    e1 = np.cross(A, np.where(np.abs(A[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]]))
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    B = np.stack([e1, np.cross(A, e1)], axis=2)  # (T, 3, 2) basis of the plane normal to A
+    lam_l = np.linalg.eigvalsh(np.einsum("tia,tij,tjb->tab", B, H_l, B))[:, 0]
+    lam_c = np.linalg.eigvalsh(H_c)[:, 0]
+    with np.errstate(divide="ignore"):
+        return 1.0 / np.sqrt(np.maximum(lam_l, 0.0)), 1.0 / np.sqrt(np.maximum(lam_c, 0.0))
+
+
+def _mark_undetermined(pre: Preprocessed, relations: Relations, prob: _Problem, rel_mask: np.ndarray, sol: Solution,
+                       config: GraphConfig, values: gtsam.Values) -> Solution:
+    """Returns ``sol`` with undetermined lines invalid and undetermined frames unregistered (:func:`determinacy`).
+
+    A frame is kept only if its centre was a BA variable and its observations
+    of the kept lines determine it within ``max_center_sigma_m``; a line only
+    if within ``max_line_sigma_m``. Their counts go to ``residuals``.
+    """
+    h = values.atVector(FLOOR_KEY)[0] if values.exists(FLOOR_KEY) else 0.0
+    seen = prob if config.reprojection else dataclasses.replace(prob, obs_seg=prob.obs_seg[:0],
+                                                                 obs_track=prob.obs_track[:0], obs_frame=prob.obs_frame[:0])
+    line_sig, _ = determinacy(pre, relations, seen, rel_mask, sol.lines.taylor, sol.R_wc, sol.centers,
+                              sol.camera.K, config, h)
+    line_ok = np.zeros(len(line_sig), bool)
+    line_ok[prob.lines] = line_sig[prob.lines] <= config.max_line_sigma_m
+    keep = line_ok[prob.obs_track] & config.reprojection  # without reprojection factors no centre is determined
+    sub = dataclasses.replace(prob, obs_seg=prob.obs_seg[keep], obs_track=prob.obs_track[keep],
+                              obs_frame=prob.obs_frame[keep])
+    _, center_sig = determinacy(pre, relations, sub, np.zeros(len(rel_mask), bool), sol.lines.taylor, sol.R_wc,
+                                sol.centers, sol.camera.K, config, h)
+    frame_ok = np.zeros(len(center_sig), bool)
+    frame_ok[prob.frames] = center_sig[prob.frames] <= config.max_center_sigma_m
+    registered = sol.registered & frame_ok
+    valid = sol.lines.valid.copy()
+    valid[prob.lines] &= line_ok[prob.lines]
+    centers = np.where(registered[:, None], sol.centers, np.nan)
+    R = np.where(registered[:, None, None], sol.R_wc, np.nan)
+    res = dict(sol.residuals)
+    res["lines_undetermined"] = int(np.sum(sol.lines.valid[prob.lines] & ~line_ok[prob.lines]))
+    res["frames_undetermined"] = int(np.sum(sol.registered & ~registered))
+    return dataclasses.replace(sol, registered=registered, centers=centers, R_wc=R,
+                               lines=dataclasses.replace(sol.lines, valid=valid), residuals=res)
 
 
 def _orthonormal(R: np.ndarray) -> np.ndarray:
@@ -498,9 +625,10 @@ def bundle_adjust_incremental(pre: Preprocessed, tracks: Tracks, relations: Rela
         if on_batch is not None:
             on_batch(k, sol)
         # next start: this batch's estimates where they exist, the initial values elsewhere
-        centers = np.where(mask[:, None], sol.centers, initial.centers)
-        R_wc = np.where(mask[:, None, None], sol.R_wc, initial.R_wc)
-        taylor = np.where(seen[:, None], sol.lines.taylor, initial.lines.taylor)
+        done = sol.registered  # frames this batch determined (undetermined ones restart from ``initial``)
+        centers = np.where(done[:, None], sol.centers, initial.centers)
+        R_wc = np.where(done[:, None, None], sol.R_wc, initial.R_wc)
+        taylor = np.where((seen & sol.lines.valid)[:, None], sol.lines.taylor, initial.lines.taylor)
         current = dataclasses.replace(initial, R_wc=R_wc, centers=centers, camera=sol.camera,
                                       lines=dataclasses.replace(initial.lines, taylor=taylor))
     return out

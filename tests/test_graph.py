@@ -36,9 +36,13 @@ def perturbed(p, seed=0, center_sigma=0.03, line_sigma=0.05, along=0.0, camera=N
 
 
 def similarity_errors(p, sol):
-    """Returns (median centre error / trajectory diameter, median line error m) after a similarity alignment."""
-    src = np.vstack([sol.centers, sol.lines.taylor])
-    dst = np.vstack([p.gt_centers, gt_solution(p).lines.taylor])
+    """Returns (median centre error / trajectory diameter, median line error m) after a similarity alignment.
+
+    Over the registered frames and valid lines (BA marks undetermined ones).
+    """
+    reg, ok = sol.registered, sol.lines.valid
+    src = np.vstack([sol.centers[reg], sol.lines.taylor[ok]])
+    dst = np.vstack([p.gt_centers[reg], gt_solution(p).lines.taylor[ok]])
     ms, md = src.mean(0), dst.mean(0)
     U, S, Vt = np.linalg.svd((dst - md).T @ (src - ms))
     E = np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))])
@@ -46,9 +50,9 @@ def similarity_errors(p, sol):
     s = np.trace(np.diag(S) @ E) / np.sum((src - ms) ** 2)
     al = lambda x: s * (x - ms) @ R.T + md  # noqa: E731
     diam = np.max(np.linalg.norm(p.gt_centers[:, None] - p.gt_centers[None], axis=2))
-    ce = np.median(np.linalg.norm(al(sol.centers) - p.gt_centers, axis=1)) / diam
-    A = sol.lines.direction
-    d = al(sol.lines.taylor) - gt_solution(p).lines.taylor
+    ce = np.median(np.linalg.norm(al(sol.centers[reg]) - p.gt_centers[reg], axis=1)) / diam
+    A = sol.lines.direction[ok]
+    d = al(sol.lines.taylor[ok]) - gt_solution(p).lines.taylor[ok]
     le = np.median(np.linalg.norm(d - np.sum(d * A, 1, keepdims=True) * A, axis=1))
     return ce, le
 
@@ -59,7 +63,9 @@ def problem():
     return make_problem("living", 40, size=(480, 270), seed=1, pixel_noise_px=0.5, rot_noise_deg=0.3, imu_drift_deg=0.4)
 
 
-FAST = GraphConfig(max_iterations=15)
+# image-free problem: preprocessed rotations carry 0.3 deg noise (the prior says so) and the unbiased
+# observations determine the focal to ~1.2 % (real pipeline output: see test_focal_kept_when_undetermined)
+FAST = GraphConfig(max_iterations=15, rotation_prior_sigma_deg=0.3, focal_max_sigma_frac=0.02)
 
 
 def test_ba_converges_close_to_ground_truth(problem):
@@ -68,8 +74,9 @@ def test_ba_converges_close_to_ground_truth(problem):
     sol = bundle_adjust(p.preprocessed, p.tracks, p.relations, init, FAST)
     ce0, le0 = similarity_errors(p, init)
     ce, le = similarity_errors(p, sol)
-    rot0 = np.median(rotation_angle_deg(p.gt_R_wc, init.R_wc))
-    rot = np.median(rotation_angle_deg(p.gt_R_wc, sol.R_wc))
+    reg = sol.registered
+    rot0 = np.median(rotation_angle_deg(p.gt_R_wc[reg], init.R_wc[reg]))
+    rot = np.median(rotation_angle_deg(p.gt_R_wc[reg], sol.R_wc[reg]))
     assert ce < 0.03 and ce < 0.4 * ce0, (ce0, ce)       # centres: < 3 % of the trajectory diameter (0.67 m)
     assert le < 0.015 and le < 0.3 * le0, (le0, le)      # lines: < 1.5 cm from 5 cm noise
     assert rot < 0.11 and rot < 0.7 * rot0, (rot0, rot)  # rotations: 0.14 -> < 0.11 deg median
@@ -83,7 +90,9 @@ def test_ba_converges_close_to_ground_truth(problem):
     g = gt_solution(p)
     ok = sol.lines.valid
     assert np.median(np.abs(sol.lines.extent[ok] - g.lines.extent[ok])) < 0.1
-    assert np.all(sol.registered) and np.all(np.isfinite(sol.centers))
+    # the first and last frames see few lines: at most 2 of 40 left undetermined, the rest finite
+    assert sol.registered.sum() >= p.n_frames - 2 and np.all(np.isfinite(sol.centers[sol.registered]))
+    assert r["frames_undetermined"] == p.n_frames - sol.registered.sum() and sol.lines.valid.sum() >= 0.95 * p.tracks.n
 
 
 def test_focal_length_refined_in_phase3(problem):
@@ -115,9 +124,9 @@ def test_switching_a_factor_type_off_changes_graph_and_result(problem, switch, c
         # with it Lambda is the foot of the perpendicular (A . Lambda = 0); without, A . Lambda stays free
         assert on.residuals["colinearity_rms_m"] < 1e-3 < off.residuals["colinearity_rms_m"]
     elif switch == "imu_prior":
-        assert np.max(rotation_angle_deg(on.R_wc, off.R_wc)) > 1e-3
+        assert np.nanmax(rotation_angle_deg(on.R_wc, off.R_wc)) > 1e-3
     else:
-        dc = np.max(np.linalg.norm(on.centers - off.centers, axis=1))
+        dc = np.nanmax(np.linalg.norm(on.centers - off.centers, axis=1))
         dl = np.max(np.linalg.norm(on.lines.taylor - off.lines.taylor, axis=1))
         assert max(dc, dl) > 1e-5, (dc, dl)
 
@@ -128,8 +137,9 @@ def test_reprojection_off_leaves_relations_only(problem):
     off = bundle_adjust(p.preprocessed, p.tracks, p.relations, init,
                         dataclasses.replace(FAST, phases=(1,), reprojection=False))
     assert off.residuals["factors"]["reprojection"] == 0
-    # without reprojection the centres have nothing to move them
-    np.testing.assert_allclose(off.centers, init.centers, atol=1e-6)
+    # without reprojection no factor determines a centre: no frame may be output as registered
+    assert not off.registered.any() and np.all(np.isnan(off.centers))
+    assert off.residuals["frames_undetermined"] == p.n_frames
 
 
 def test_false_relations_are_rejected():
@@ -157,7 +167,8 @@ def test_incremental_final_matches_batch(problem):
     sols = bundle_adjust_incremental(p.preprocessed, p.tracks, p.relations, init, cfg, batch_frames=15,
                                      on_batch=lambda k, s: seen.append(k))
     assert len(sols) == 3 and seen == [0, 1, 2]
-    assert sols[0].registered.sum() == 15 and sols[-1].registered.sum() == p.n_frames
+    for sol, n in zip(sols, (15, 30, 40)):  # frames so far, less those their batch left undetermined (<= 2)
+        assert sol.registered.sum() == n - sol.residuals["frames_undetermined"] >= n - 2
     final = sols[-1]
     ce_b, le_b = similarity_errors(p, batch)
     ce_i, le_i = similarity_errors(p, final)
@@ -165,7 +176,7 @@ def test_incremental_final_matches_batch(problem):
     rb, ri = batch.residuals["reprojection_rms_px"], final.residuals["reprojection_rms_px"]
     assert abs(ri - rb) <= 0.1 * rb
     diam = np.max(np.linalg.norm(p.gt_centers[:, None] - p.gt_centers[None], axis=2))
-    assert np.median(np.linalg.norm(final.centers - batch.centers, axis=1)) < 0.01 * diam
+    assert np.nanmedian(np.linalg.norm(final.centers - batch.centers, axis=1)) < 0.01 * diam
 
 
 def test_line_extents_recover_endpoints():
@@ -180,3 +191,32 @@ def test_line_extents_recover_endpoints():
                    for i in range(4)])
     s = line_extents(lam, A, ep, R, C, K)
     np.testing.assert_allclose(s, np.tile([-0.5, 0.7], (4, 1)), atol=1e-9)
+
+
+def test_focal_kept_when_undetermined(problem):
+    """Phase 3 leaves the focal at its calibration when its marginal std exceeds ``focal_max_sigma_frac``."""
+    p = problem
+    K = p.camera.K
+    cam = dataclasses.replace(p.camera, params=np.array([K[0, 0] * 1.03, K[1, 1] * 1.03, K[0, 2], K[1, 2]]))
+    strict = dataclasses.replace(FAST, focal_max_sigma_frac=0.002)  # the default: std must be < 0.2 % of f
+    sol = bundle_adjust(p.preprocessed, p.tracks, p.relations, perturbed(p, camera=cam), strict)
+    r = sol.residuals
+    assert 0.002 * K[0, 0] < r["focal_sigma_px"] < 0.02 * K[0, 0], r["focal_sigma_px"]  # ~1.2 % here
+    assert r["focal_refined"] is False and sol.camera.K[0, 0] == pytest.approx(K[0, 0] * 1.03)
+    loose = bundle_adjust(p.preprocessed, p.tracks, p.relations, perturbed(p, camera=cam), FAST)
+    assert loose.residuals["focal_refined"] is True
+
+
+def test_rotation_prior_holds_rotations(problem):
+    """A tight absolute prior keeps phase-2 rotations at the preprocessed ones; without it they move."""
+    from panosfm_graph.graph import determinacy  # noqa: F401  (public helper exercised by bundle_adjust)
+
+    p = problem
+    init = perturbed(p)
+    cfg = dataclasses.replace(FAST, phases=(1, 2))
+    tight = bundle_adjust(p.preprocessed, p.tracks, p.relations, init, dataclasses.replace(cfg, rotation_prior_sigma_deg=1e-3))
+    free = bundle_adjust(p.preprocessed, p.tracks, p.relations, init, dataclasses.replace(cfg, rotation_prior_sigma_deg=0))
+    reg = tight.registered & free.registered
+    assert tight.residuals["factors"]["rotation_prior"] == p.n_frames and free.residuals["factors"]["rotation_prior"] == 0
+    assert np.max(rotation_angle_deg(init.R_wc[reg], tight.R_wc[reg])) < 0.01
+    assert np.median(rotation_angle_deg(init.R_wc[reg], free.R_wc[reg])) > 0.05

@@ -22,6 +22,16 @@ rotations), run ``bundle_adjust`` and report, before and after BA:
 breaks them) to reach the size of a real 300-frame capture (~3,000 tracks).
 
     python tools/bench_ba.py --frames 300 --clutter 60 --fragment 6 --cache /tmp/bench_ba --scenes living bedroom office
+
+``--real DIR`` benchmarks BA on REAL pipeline output instead: each scene is
+synthesised as a capture under DIR (once), run through the pipeline up to the
+linear solve (``run_pipeline(..., stop_after="linear", resume=True)``, cached
+under DIR), then ``bundle_adjust`` (or ``bundle_adjust_incremental`` with
+``--incremental N``) is timed on that output. The linear and the BA solutions
+are both written with ``export.export_reconstruction`` and measured with
+``evaluate.evaluate_reconstruction``: exactly ``panosfm eval``'s metrics.
+
+    python tools/bench_ba.py --real /tmp/bench_ba_real --frames 300 --size 960 540 --normals oracle
 """
 from __future__ import annotations
 
@@ -242,6 +252,98 @@ def run_scene(name: str, args) -> dict:
     return rec
 
 
+REAL_METRICS = (  # (name, path in evaluate_reconstruction's dict, lower is better)
+    ("registered_ratio", ("registered_ratio",), False),
+    ("center_err_rel_median", ("center_error_rel", "median"), True),
+    ("rot_err_deg_median", ("rotation_error_deg", "median"), True),
+    ("rot_err_rotalign_deg_median", ("rotation_error_rotalign_deg", "median"), True),
+    ("reproj_px_mean", ("reprojection_px", "mean"), True),
+    ("reproj_px_median", ("reprojection_px", "median"), True),
+    ("line_surface_m_median", ("lines", "distance_m", "median"), True),
+    ("lines", ("lines", "lines"), False),
+    ("edges_recovered", ("lines", "recovered"), False),
+)
+
+
+def _dig(d, path):
+    for k in path:
+        if d is None:
+            return None
+        d = d.get(k)
+    return d
+
+
+def real_metrics(capture, solution: Solution, workdir) -> dict:
+    """Returns ``panosfm eval``'s headline metrics of ``solution`` (exported into ``workdir``, then evaluated)."""
+    from panosfm_graph.evaluate import evaluate_reconstruction
+    from panosfm_graph.export import export_reconstruction
+
+    export_reconstruction(workdir, solution, capture.frame_names)
+    m = evaluate_reconstruction(capture, workdir)
+    return {name: _dig(m, path) for name, path, _ in REAL_METRICS}
+
+
+def run_real_scene(name: str, args) -> dict:
+    """Returns the benchmark record of one scene through the real pipeline (module docstring, ``--real``)."""
+    import logging
+    import tempfile
+    from pathlib import Path
+
+    from panosfm_graph.config import Config, with_overrides
+    from panosfm_graph.pipeline import run_pipeline
+    from panosfm_graph.synth.writer import synthesize
+
+    logging.getLogger("panosfm").setLevel(logging.WARNING)
+    root = Path(args.real)
+    W, H = args.size
+    cap = root / f"cap_{name}-{args.frames}-{W}x{H}-s{args.seed}"
+    if not cap.exists():
+        synthesize(cap, name, args.frames, (W, H), args.seed)
+    overrides = {"linear": {"camera_height_m": args.camera_height}}
+    if args.normals:
+        overrides["normals"] = {"source": args.normals}
+    config = with_overrides(Config(), **overrides)
+    gcfg = dataclasses.replace(config.graph, max_iterations=args.iters)
+    out = root / f"run_{cap.name}-{args.normals or 'default'}"
+    t0 = time.perf_counter()
+    res = run_pipeline(cap, out, config, resume=True, stop_after="linear", rerun=False, views=False)
+    t_front = time.perf_counter() - t0
+    pre, tracks, rel, lin = res.preprocessed, res.tracks, res.relations, res.linear
+    t0 = time.perf_counter()
+    per_batch = []
+    if args.incremental:
+        sols = bundle_adjust_incremental(pre, tracks, rel, lin, gcfg, batch_frames=args.incremental,
+                                         on_batch=lambda k, s: per_batch.append(time.perf_counter()))
+        sol = sols[-1]
+    else:
+        sol = bundle_adjust(pre, tracks, rel, lin, gcfg)
+    t_ba = time.perf_counter() - t0
+    with tempfile.TemporaryDirectory() as tmp:
+        before = real_metrics(res.capture, lin, Path(tmp) / "linear")
+        after = real_metrics(res.capture, sol, Path(tmp) / "ba")
+    rec = {
+        "scene": name, "frames": int(len(lin.registered)), "size": f"{W}x{H}", "normals": args.normals or "default",
+        "tracks": tracks.n, "observations": int(np.sum(tracks.track_of >= 0)), "relations": rel.counts(),
+        "seconds_pipeline_to_linear": round(t_front, 2), "seconds_ba": round(t_ba, 2),
+        "seconds_per_phase": {k: round(v["seconds"], 2) for k, v in sol.residuals.get("phases", {}).items()},
+        "before": before, "after": after,
+        "ba_factors": sol.residuals.get("factors"), "relations_rejected": sol.residuals.get("relations_rejected"),
+        "reprojection_rms_px": [sol.residuals.get("reprojection_rms_px_initial"), sol.residuals.get("reprojection_rms_px")],
+        "focal_px": [float(lin.camera.K[0, 0]), sol.residuals.get("focal_px")],
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+    }
+    if per_batch:
+        rec["seconds_per_batch"] = list(np.round(np.diff(np.r_[t0, per_batch]), 2))
+    return rec
+
+
+def real_improves(rec: dict) -> bool:
+    """Returns whether BA is no worse than the linear solve on every lower-is-better metric and keeps every frame."""
+    b, a = rec["before"], rec["after"]
+    ok = all(a[n] is not None and (b[n] is None or a[n] <= b[n]) for n, _, low in REAL_METRICS if low)
+    return ok and a["registered_ratio"] >= b["registered_ratio"] - 1e-9
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scenes", nargs="+", default=["living", "bedroom", "office"])
@@ -257,8 +359,19 @@ def main(argv=None) -> int:
     ap.add_argument("--iters", type=int, default=30)
     ap.add_argument("--init", choices=["perturbed", "linear"], default="perturbed")
     ap.add_argument("--incremental", type=int, default=0, help="frames per batch (0: one batch solve)")
+    ap.add_argument("--real", default="", help="directory for captures and pipeline runs: benchmark real pipeline output")
+    ap.add_argument("--normals", choices=["model", "orientation-map", "oracle"], default=None,
+                    help="--real: normals source (default: the Config's)")
+    ap.add_argument("--camera-height", type=float, default=1.5, help="--real: camera height (m) for metric scale")
     args = ap.parse_args(argv)
     out = []
+    if args.real:
+        for name in args.scenes:
+            rec = run_real_scene(name, args)
+            out.append(rec)
+            print(json.dumps(rec, default=float), flush=True)
+        print(json.dumps({"ba_improves_every_metric": all(real_improves(r) for r in out)}))
+        return 0
     for name in args.scenes:
         rec = run_scene(name, args)
         out.append(rec)
