@@ -143,6 +143,31 @@ class Segments:
 
 
 @dataclass(frozen=True)
+class Thumbnails:
+    """Small JPEG copies of every frame, made while detection reads them (for the rerun timeline).
+
+    Frame ``f`` is ``jpeg[offsets[f]:offsets[f+1]]`` (JPEG bytes, ``width`` pixels wide).
+    """
+
+    jpeg: np.ndarray  # (B,) uint8, all frames' JPEG bytes concatenated
+    offsets: np.ndarray  # (F + 1,) int64
+    width: int
+
+    @property
+    def n(self) -> int:
+        return len(self.offsets) - 1
+
+    def get(self, f: int) -> bytes:
+        return self.jpeg[int(self.offsets[f]):int(self.offsets[f + 1])].tobytes()
+
+    @staticmethod
+    def from_list(items: list[bytes], width: int) -> "Thumbnails":
+        sizes = np.array([len(b) for b in items], dtype=np.int64)
+        jpeg = np.frombuffer(b"".join(items), dtype=np.uint8).copy()
+        return Thumbnails(jpeg=jpeg, offsets=np.concatenate([[0], np.cumsum(sizes)]), width=int(width))
+
+
+@dataclass(frozen=True)
 class ManhattanFrame:
     """The three Manhattan directions (paper §3.1): rows are unit world vectors x, y, z.
 

@@ -27,12 +27,13 @@ from . import __version__
 from .cache import StageCache, stable_hash
 from .config import Config
 from .data import (RELATION_NAMES, Capture, NormalMaps, Preprocessed, Relations, Segments, Solution,
-                   Tracks)
+                   Thumbnails, Tracks)
 from .errors import InputError
 from .progress import stage
 
 log = logging.getLogger("panosfm")
 
+THUMBNAIL_WIDTH = 480  # frames on the rerun timeline
 CACHE_KEEP = ("cache",)  # entries of an old result carried into the new one
 STAGES = ("detect", "preprocess", "track", "normals", "relations", "linear", "bundle_adjust")
 
@@ -50,6 +51,7 @@ class RunResult:
     linear: Solution | None = None
     solution: Solution | None = None
     batches: list[Solution] = field(default_factory=list)
+    thumbnails: Thumbnails | None = None
 
     def report(self) -> str:
         """Returns a short human-readable account of the run."""
@@ -151,7 +153,13 @@ def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config =
         return stop_after == name
 
     key = stable_hash(capture_identity(capture), config.capture, config.detect)
-    segments = _cached(cache, "detect", key, Segments, lambda: _detect(capture, config), timings, resumed)
+    thumbs: list[bytes] | None = [] if rerun else None
+    segments = _cached(cache, "detect", key, Segments, lambda: _detect(capture, config, thumbs), timings, resumed)
+    if thumbs:  # made while detection decoded the frames; the rerun timeline shows them
+        result.thumbnails = Thumbnails.from_list(thumbs, min(THUMBNAIL_WIDTH, capture.camera.width))
+        cache.save("thumbnails", key, result.thumbnails)
+    elif rerun:
+        result.thumbnails = cache.load("thumbnails", key, Thumbnails)
     if not done("detect"):
         key = stable_hash(key, config.manhattan, config.rotation)
         pre = _cached(cache, "preprocess", key, Preprocessed,
@@ -209,10 +217,10 @@ def _normal_model_identity(config: Config) -> str | None:
 
 # --- stage adapters: plain calls into the stage modules -------------------------------------------
 
-def _detect(capture: Capture, config: Config) -> Segments:
+def _detect(capture: Capture, config: Config, thumbnails: list[bytes] | None) -> Segments:
     from .lines.detect import detect_segments
 
-    return detect_segments(capture, config.detect)
+    return detect_segments(capture, config.detect, thumbnails=thumbnails, thumbnail_width=THUMBNAIL_WIDTH)
 
 
 def _preprocess(capture: Capture, segments: Segments, config: Config) -> Preprocessed:
@@ -333,7 +341,8 @@ def _export(tmp: Path, capture: Capture, segments: Segments, result: RunResult, 
         from .viz import log_recording
 
         log_recording(tmp / "recording.rrd", capture, result.preprocessed, result.tracks, result.relations,
-                      sol, spawn=spawn, batches=result.batches or None, line_colors=colors)
+                      sol, spawn=spawn, batches=result.batches or None, line_colors=colors,
+                      thumbnails=result.thumbnails)
         summary["seconds"]["rerun"] = round(time.perf_counter() - t0, 3)
     summary["peak_memory_mb"] = round(peak_memory_mb(), 1)
     write_summary(tmp / "summary.json", summary)

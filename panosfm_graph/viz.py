@@ -36,8 +36,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .data import FLOOR, RELATION_NAMES, Preprocessed, Relations, Solution, Tracks
+from .data import FLOOR, RELATION_NAMES, Preprocessed, Relations, Solution, Thumbnails, Tracks
 from .errors import InputError
+from .thumbnails import jpeg_thumbnail
 from .views import (
     _model_box,
     _Perspective,
@@ -57,7 +58,6 @@ AXIS_RGB = np.array([[230, 50, 50], [50, 200, 50], [60, 110, 240], [150, 150, 15
 # RGB colours per relation kind: orthogonal, parallel, junction, floor.
 RELATION_RGB = np.array([[255, 0, 255], [0, 230, 230], [255, 220, 0], [255, 140, 0]], dtype=np.uint8)
 CAMERA_RGB = (40, 200, 40)
-JPEG_QUALITY = 80
 MODEL_UPDATES = 60  # the growing 3D model is logged at most this many times on the frame timeline
 
 
@@ -94,16 +94,7 @@ def _frame_images(capture: Any, n: int):
 
 
 def _encode(img_bgr: np.ndarray, width: int) -> bytes:
-    h, w = img_bgr.shape[:2]
-    k = w // width  # integer box-filter first (OpenCV's fast INTER_AREA path), then bilinear: ~7x faster
-    if k >= 2:
-        img_bgr = cv2.resize(img_bgr, (w // k, h // k), interpolation=cv2.INTER_AREA)
-    if img_bgr.shape[1] != width:
-        img_bgr = cv2.resize(img_bgr, (width, max(1, round(h * width / w))), interpolation=cv2.INTER_LINEAR)
-    ok, buf = cv2.imencode(".jpg", img_bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
-    if not ok:
-        raise RuntimeError("JPEG encoding failed")
-    return buf.tobytes()
+    return jpeg_thumbnail(img_bgr, width)
 
 
 def _scene_box(solution: Solution | None) -> tuple[np.ndarray, np.ndarray]:
@@ -185,13 +176,16 @@ def _log_final(rec: Any, solution: Solution, line_colors: np.ndarray | None) -> 
 def log_recording(path: str | Path | None, capture: Any, pre: Preprocessed, tracks: Tracks | None,
                   relations: Relations | None, solution: Solution | None, *, spawn: bool = False,
                   batches: list[Solution] | None = None, image_width: int = 480,
-                  line_colors: np.ndarray | None = None, model_updates: int = MODEL_UPDATES) -> Path | None:
+                  line_colors: np.ndarray | None = None, model_updates: int = MODEL_UPDATES,
+                  thumbnails: Thumbnails | None = None) -> Path | None:
     """Returns the path of the finalised rerun recording of a run (or None when only spawned).
 
     ``capture`` needs ``camera``, ``n_frames`` and ``frame(i)`` (BGR; ``frames()``
     is used when present). ``line_colors`` (T, 3) uint8 BGR defaults to the
     tracks' average segment colours. Frames are logged as JPEGs ``image_width``
-    pixels wide; the growing 3D model at most ``model_updates`` times.
+    pixels wide (``thumbnails`` made during detection are used as they are,
+    so frames are not decoded twice); the growing 3D model at most
+    ``model_updates`` times.
     ``spawn`` also streams to a live viewer (skipped with a warning when none
     can start). The recording is finalised (``disconnect``) even on errors.
     """
@@ -203,6 +197,10 @@ def log_recording(path: str | Path | None, capture: Any, pre: Preprocessed, trac
     segs = pre.segments
     F = int(capture.n_frames)
     cam = solution.camera if solution is not None else capture.camera
+    if thumbnails is not None and thumbnails.n == F:
+        image_width = thumbnails.width
+    else:
+        thumbnails = None
     sc = image_width / float(cam.width)
     img_h = max(1, round(cam.height * sc))
     lo, hi = _scene_box(solution)
@@ -231,7 +229,7 @@ def log_recording(path: str | Path | None, capture: Any, pre: Preprocessed, trac
     rec.set_sinks(*sinks, default_blueprint=blueprint)
     try:
         _log_frames(rec, capture, pre, tracks, relations, solution, F, sc, image_width, img_h, lo, hi,
-                    model_updates)
+                    model_updates, thumbnails)
         if batches:
             rec.reset_time()
             rec.log("batch", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
@@ -255,7 +253,7 @@ def log_recording(path: str | Path | None, capture: Any, pre: Preprocessed, trac
 
 def _log_frames(rec: Any, capture: Any, pre: Preprocessed, tracks: Tracks | None, relations: Relations | None,
                 solution: Solution | None, F: int, sc: float, image_width: int, img_h: int,
-                lo: np.ndarray, hi: np.ndarray, model_updates: int) -> None:
+                lo: np.ndarray, hi: np.ndarray, model_updates: int, thumbnails: Thumbnails | None = None) -> None:
     """Logs the ``frame`` timeline: image, segments, relations, camera, lines placed so far."""
     import rerun as rr
 
@@ -292,11 +290,13 @@ def _log_frames(rec: Any, capture: Any, pre: Preprocessed, tracks: Tracks | None
     last_count = -1
     seg_in_frame = np.full(max(T, 1), -1, dtype=np.int64)
 
-    for i, img in enumerate(_frame_images(capture, F)):
+    images = (thumbnails.get(i) for i in range(F)) if thumbnails is not None else _frame_images(capture, F)
+    for i, img in enumerate(images):
         if i >= F:
             break
         rec.set_time("frame", sequence=i)
-        rec.log("world/camera/image", rr.EncodedImage(contents=_encode(img, image_width), media_type="image/jpeg"))
+        jpeg = img if isinstance(img, bytes) else _encode(img, image_width)
+        rec.log("world/camera/image", rr.EncodedImage(contents=jpeg, media_type="image/jpeg"))
         if solution is not None and known[i]:
             rec.log("world/camera", rr.Transform3D(translation=centers[i], mat3x3=solution.R_wc[i]))
         else:

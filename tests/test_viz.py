@@ -235,3 +235,27 @@ def test_logging_300_frames_is_cheap(tmp_path):
     log_recording(tmp_path / "big.rrd", capture, pre, tracks, rel, sol)
     dt = time.perf_counter() - t0
     assert dt < 300 * 0.02  # under 20 ms a frame (measured ~3 ms at 1280x720 -> 480 wide)
+
+
+
+def test_thumbnails_replace_frame_reads(tmp_path):
+    """Thumbnails made during detection are logged as they are; the capture's frames are never read."""
+    from panosfm_graph.data import Thumbnails
+    from panosfm_graph.thumbnails import jpeg_thumbnail
+
+    F = 6
+    capture, pre, tracks, rel, sol = spin(F)
+    thumbs = Thumbnails.from_list([jpeg_thumbnail(capture.frame(i), 80) for i in range(F)], 80)
+    assert thumbs.n == F and all(thumbs.get(i)[:2] == b"\xff\xd8" for i in range(F))  # JPEG magic
+
+    def no_reads(k):
+        raise AssertionError("a frame was decoded although thumbnails were given")
+
+    blind = SimpleNamespace(camera=capture.camera, n_frames=F, frame=no_reads)
+    rows, data = read_back(log_recording(tmp_path / "rec.rrd", blind, pre, tracks, rel, sol, thumbnails=thumbs))
+    assert rows["/world/camera/image"] >= F
+    images = [rb for rb in data["/world/camera/image"] if "EncodedImage:blob" in rb.schema.names]
+    blobs = column(images, "EncodedImage:blob")
+    assert len(blobs) == F
+    first = blobs[0][0] if isinstance(blobs[0], list) and len(blobs[0]) == 1 else blobs[0]
+    assert bytes(first) == thumbs.get(0)

@@ -15,6 +15,7 @@ from ..config import Config, DetectConfig
 from ..data import Capture, Segments
 from ..parallel import process_pool
 from ..progress import progress
+from ..thumbnails import jpeg_thumbnail
 
 log = logging.getLogger("panosfm.lines")
 
@@ -133,12 +134,22 @@ def detect_frame(
     return merged.astype(np.float32), colors
 
 
-def detect_segments(capture: Capture, config: Config | DetectConfig) -> Segments:
+def _read(capture: Capture, i: int, thumbnails: list[bytes] | None, width: int) -> np.ndarray:
+    img = capture.frame(i)
+    if thumbnails is not None:
+        thumbnails.append(jpeg_thumbnail(img, min(width, img.shape[1])))
+    return img
+
+
+def detect_segments(capture: Capture, config: Config | DetectConfig,
+                    thumbnails: list[bytes] | None = None, thumbnail_width: int = 480) -> Segments:
     """Returns the merged LSD segments of every frame of ``capture`` (paper §3.1 'Line segment detection').
 
     Frames are read in this process (sequential access suits videos) and
     detected in ``config.workers`` worker processes; ``workers <= 1`` runs
-    in-process.
+    in-process. When a list is given as ``thumbnails``, each frame's JPEG
+    thumbnail (``thumbnail_width`` wide) is appended to it while the frame is
+    in memory anyway.
     """
     cfg = _detect_config(config)
     K = capture.camera.K
@@ -148,14 +159,15 @@ def detect_segments(capture: Capture, config: Config | DetectConfig) -> Segments
     results: list[tuple[np.ndarray, np.ndarray]] = []
     if workers <= 1:
         for i in progress(range(n), "lines", total=n):
-            results.append(detect_frame(capture.frame(i), cfg, K, dist))
+            results.append(detect_frame(_read(capture, i, thumbnails, thumbnail_width), cfg, K, dist))
     else:
         # a sliding window of in-flight frames: read lazily, never all held in memory
         window = 4 * workers
         pending: deque = deque()
         with process_pool(workers) as pool:
             for i in progress(range(n), "lines", total=n):
-                pending.append(pool.submit(detect_frame, capture.frame(i), cfg, K, dist))
+                pending.append(pool.submit(detect_frame, _read(capture, i, thumbnails, thumbnail_width),
+                                           cfg, K, dist))
                 if len(pending) > window:
                     results.append(pending.popleft().result())
             results.extend(f.result() for f in pending)
