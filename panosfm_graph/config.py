@@ -94,6 +94,8 @@ class RelationsConfig:
     junction_dist_frac: float = 0.1  # endpoints within this * min(w, h)
     floor_normal_deg: float = 25.0  # floor pixels: normal within this of vertical
     max_pair_dist_frac: float = 0.5  # candidate pairs for quad tests: midpoints within this * min(w, h)
+    quad_valid_share: float = 0.5  # a quad needs a normal on this share of its area (0.95: orientation-map
+    # orthogonal precision 0.45-0.55 -> 0.73-0.84, but end to end fewer frames register)
     # junction checks beyond the paper (0 / False: the paper's endpoint test only)
     junction_corner_frac: float = 0.03  # both endpoints within this * min(w, h) of the lines' intersection (an L)
     junction_normals: bool = True  # the quad inside the L passes the orthogonal normal test too
@@ -112,7 +114,8 @@ class LinearConfig:
     min_view_eig: float = 0.02  # register a frame only if its lines' interpretation-plane normals span 3D this well
     robust_iterations: int = 0  # IRLS rounds (Cauchy) on coplanarity rows against wrong relations; 0 = paper (plain LS)
     robust_k: float = 2.385  # Cauchy constant, in robust sigmas (1.4826 * median |residual|)
-    motion_weight: float = 0.0  # body-motion prior on consecutive centres (rows in m, like colinearity); 0 = paper
+    floor_tolerance: float = 0.0  # IRLS: floor lines this share of the camera-to-floor distance ABOVE the floor are downweighted (0: never)
+    motion_weight: float = 0.3  # body-motion prior on consecutive centres (rows in m, like colinearity; sigma_c / sigma_accel); 0 = paper
     motion_order: int = 2  # 2: T_a - 2 T_b + T_c ~ 0 (smooth velocity); 1: T_a - T_b ~ 0
     motion_max_gap: int = 3  # frames: no motion row across a larger gap between registered frames
 

@@ -6,7 +6,7 @@ import pytest
 
 from panosfm_graph.config import NormalsConfig, RelationsConfig
 from panosfm_graph.data import (FLOOR, JUNCTION, ORTHOGONAL, PARALLEL, Camera, Capture, GroundTruth, ManhattanFrame,
-                                NormalMaps, Preprocessed, Segments, Tracks)
+                                NormalMaps, Preprocessed, Relations, Segments, Tracks)
 from panosfm_graph.normals import estimate_normals
 from panosfm_graph.relations import detect_relations, relations_true
 from panosfm_graph.synth.problem import make_problem
@@ -72,13 +72,34 @@ def test_known_frame_relations():
     assert np.all(rel.track_a[rel.kind != FLOOR] < rel.track_b[rel.kind != FLOOR])
 
 
+PAPER_JUNCTION = dict(junction_corner_frac=0.0, junction_normals=False)  # the paper's endpoint test only
+
+
 def test_junction_threshold():
     segs = [(20, 20, 80, 20), (84, 24, 84, 70), (20, 30, 20, 90)]  # 0-1 ends 5.7 px apart; 0-2 10 px
     pre, tracks, nm = _frame(segs, [0, 2, 1])
-    rel = detect_relations(pre, tracks, nm, CAM, RelationsConfig(junction_dist_frac=0.08))
+    rel = detect_relations(pre, tracks, nm, CAM, RelationsConfig(junction_dist_frac=0.08, **PAPER_JUNCTION))
     assert _rows(rel, JUNCTION) == {(0, 1, 1)}
-    rel = detect_relations(pre, tracks, nm, CAM, RelationsConfig(junction_dist_frac=0.12))
+    rel = detect_relations(pre, tracks, nm, CAM, RelationsConfig(junction_dist_frac=0.12, **PAPER_JUNCTION))
     assert _rows(rel, JUNCTION) == {(0, 1, 1), (0, 2, 2)}
+
+
+def test_junction_needs_an_l_corner_with_consistent_normals():
+    """Beyond the paper: the segments must meet (not merely end near each other) and the L must be one face."""
+    segs = [
+        (20, 20, 80, 20), (82, 22, 82, 70),  # 0-1: an L on the y-facing wall (corner (82, 20), 2 px from both)
+        (20, 40, 60, 40), (66, 44, 66, 75),  # 2-3: ends 7 px apart but 6 px short of the lines' intersection
+        (20, 55, 80, 55), (80, 55, 80, 65),  # 4-5: meet, labels 0 and 1 (plane normal z) but the L is on the wall
+    ]
+    pre, tracks, nm = _frame(segs, [0, 2, 0, 2, 0, 1])
+    paper = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(**PAPER_JUNCTION)), JUNCTION)
+    assert {(0, 1, 1), (2, 3, 1)} <= paper
+    ours = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig()), JUNCTION)
+    assert (0, 1, 1) in ours
+    assert (2, 3, 1) not in ours  # a gap: the L-corner test rejects it
+    assert (4, 5, 2) not in ours  # normals say the inside of the L is the wall (y), not a floor (z)
+    no_normals = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(junction_normals=False)), JUNCTION)
+    assert (2, 3, 1) not in no_normals and (0, 1, 1) in no_normals
 
 
 def test_switches_turn_relation_types_off():
@@ -122,11 +143,17 @@ def test_oracle_relations_on_a_spin(spin):
         assert m.sum() >= 10
         # measured 0.90-0.95 (errors: thin fixtures 1-5 cm off the wall; occluding edges)
         assert ok[m].mean() >= 0.8, (kind, ok[m].mean())
-    # every generator junction (shared GT endpoint) is found
+    # the paper's endpoint test finds every generator junction (shared GT endpoint) ...
     gm = P.relations.kind == JUNCTION
     truth = set(zip(P.relations.track_a[gm].tolist(), P.relations.track_b[gm].tolist(),
                     P.relations.normal_axis[gm].tolist()))
-    assert len(truth & _rows(rel, JUNCTION)) >= 0.9 * len(truth)
+    paper = detect_relations(P.preprocessed, P.tracks, nm, P.camera, RelationsConfig(**PAPER_JUNCTION))
+    assert len(truth & _rows(paper, JUNCTION)) >= 0.9 * len(truth)  # measured 0.98, precision 0.85
+    # ... ours keeps those whose L is a visible face: measured precision 1.0, recall 0.57 (junctions of
+    # faces hidden from the camera, e.g. the top of a box above eye level, are dropped)
+    m = rel.kind == JUNCTION
+    assert ok[m].mean() >= 0.95, ok[m].mean()
+    assert len(truth & _rows(rel, JUNCTION)) >= 0.45 * len(truth)
     assert np.all(rel.track_a < P.tracks.n) and np.all(rel.track_b < P.tracks.n)
 
 
@@ -145,3 +172,68 @@ def test_wrong_normals_reject_quad_coplanarities(spin, const):
     assert np.sum(rel.kind == FLOOR) == 0
     good = detect_relations(P.preprocessed, P.tracks, nm, P.camera, RelationsConfig())
     assert np.sum(good.kind == ORTHOGONAL) > 10  # the same pairs are accepted with the right normals
+
+
+# ---------------------------------------------------------------- a real capture through the real pipeline
+
+
+@pytest.fixture(scope="module")
+def real_capture(tmp_path_factory):
+    """A small synthetic capture run through the pipeline up to the tracks; GT edges mapped to the tracks."""
+    import importlib.util
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from panosfm_graph.config import Config
+    from panosfm_graph.pipeline import run_pipeline
+
+    spec = importlib.util.spec_from_file_location(
+        "bench_relations", Path(__file__).resolve().parents[1] / "tools" / "bench_relations.py")
+    bench = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault(spec.name, bench)  # its dataclass needs the module registered
+    spec.loader.exec_module(sys.modules[spec.name])
+    bench = sys.modules[spec.name]
+    root = tmp_path_factory.mktemp("relcap")
+    cap = root / "cap"
+    subprocess.run([sys.executable, "-m", "panosfm_graph", "synth", str(cap), "--scene", "living", "--frames",
+                    "200", "--size", "320x180", "--seed", "0"], check=True, stdout=subprocess.DEVNULL)
+    res = run_pipeline(cap, root / "out", Config(), rerun=False, views=False, stop_after="track")
+    g = bench.ground_truth_view(res.capture, res.preprocessed, res.tracks)
+    nm = estimate_normals(res.capture, res.preprocessed, NormalsConfig(source="oracle", width=160))
+    return bench, res, g, nm
+
+
+def test_real_capture_precision_with_oracle_normals(real_capture):
+    bench, res, g, nm = real_capture
+    pre, tracks, cam = res.preprocessed, res.tracks, res.capture.camera
+    assert np.mean(g.track_edge >= 0) > 0.9  # the judge knows nearly every track's GT edge (measured 0.96)
+    truth = bench.gt_relation_sets(pre, tracks, g, 0.02)
+    # the judge agrees with the GT relation sets it builds (consistency of the two GT views)
+    for kind, rows in truth.items():
+        if rows:
+            a, b, k = (np.array(v) for v in zip(*sorted(rows)))
+            R = Relations(np.full(len(a), kind, np.int8), a.astype(np.int32), b.astype(np.int32), k.astype(np.int8),
+                          np.ones(len(a), np.int32))
+            sc, ok = bench.score(R, g, truth, 0.02)
+            assert np.all(ok == 1), (kind, np.mean(ok == 1))
+    ours, _ = bench.score(detect_relations(pre, tracks, nm, cam, RelationsConfig()), g, truth, 0.02)
+    paper, _ = bench.score(detect_relations(pre, tracks, nm, cam, RelationsConfig(**PAPER_JUNCTION)), g, truth, 0.02)
+    # measured (living, 200 frames 320x180): orthogonal 0.79, parallel 0.89, junction 0.96 (paper's test 0.6x)
+    assert ours["orthogonal"]["precision"] >= 0.7 and ours["orthogonal"]["recall"] >= 0.25
+    assert ours["parallel"]["precision"] >= 0.8 and ours["parallel"]["recall"] >= 0.25
+    assert ours["junction"]["precision"] >= 0.9 and ours["junction"]["n"] >= 30
+    assert ours["junction"]["precision"] >= paper["junction"]["precision"] + 0.15
+    assert ours["floor"]["recall"] >= 0.8  # floor precision is low (furniture tops): see the module docstring
+
+
+def test_quad_valid_share():
+    """A quad half without normals passes at the default share (0.5) and fails when 95 % must be known."""
+    pre, tracks, nm = _frame(SEGS, LABELS)
+    valid = nm.valid.copy()
+    valid[:, 10:, 5:22] = False  # map columns of image x 10..44: the left part of the 0-1 and 0-2 quads
+    nm = NormalMaps(nm.maps, valid, nm.scale, nm.source)
+    loose = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig()), ORTHOGONAL)
+    strict = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(quad_valid_share=0.95)), ORTHOGONAL)
+    assert (0, 2, 1) in loose and (0, 2, 1) not in strict
+    assert (3, 5, 0) in strict  # the right wall's quad is untouched
