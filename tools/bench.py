@@ -30,7 +30,7 @@ def _run(cmd: list[str]) -> tuple[int, float, str]:
 
 
 def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peers: list[str],
-          seed: int = 0) -> dict:
+          seed: int = 0, reuse_peer: bool = False) -> dict:
     """Returns the benchmark record (also written to ``out/bench.json`` and ``out/bench.md``)."""
     from panosfm_graph.capture import load_capture
     from panosfm_graph.evaluate import evaluate_reconstruction
@@ -55,8 +55,12 @@ def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peer
         print(f"[{scene}] panosfm: {_line(entry['panosfm'])}", flush=True)
         for mapper in peers:
             pdir = out / "runs" / scene / f"colmap-{mapper}"
-            code, secs, err = _run([sys.executable, str(HERE / "peer_colmap.py"), str(cap), str(pdir),
-                                    "--mapper", mapper])
+            if reuse_peer and (pdir / "summary.json").exists():  # the peer is deterministic for a capture
+                secs = json.loads((pdir / "summary.json").read_text())["seconds"]["total"]
+                code, err = 0, ""
+            else:
+                code, secs, err = _run([sys.executable, str(HERE / "peer_colmap.py"), str(cap), str(pdir),
+                                        "--mapper", mapper])
             entry[f"colmap-{mapper}"] = _score(pdir, cap, code, secs, err, evaluate_reconstruction)
             print(f"[{scene}] colmap-{mapper}: {_line(entry[f'colmap-{mapper}'])}", flush=True)
         record["scenes"][scene] = entry
@@ -130,6 +134,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--size", default="960x540")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="bench")
+    p.add_argument("--reuse-peer", action="store_true",
+                   help="reuse a peer reconstruction already in OUT/runs (same capture, same settings)")
     p.add_argument("--peer", default="auto", help="'auto' (incremental if pycolmap is installed), 'none', "
                    "or a comma list of incremental,global")
     args = p.parse_args(argv)
@@ -144,7 +150,8 @@ def main(argv: list[str] | None = None) -> int:
         peers = []
     else:
         peers = [s.strip() for s in args.peer.split(",") if s.strip()]
-    bench([s.strip() for s in args.scenes.split(",")], args.frames, (w, h), Path(args.out), peers, args.seed)
+    bench([s.strip() for s in args.scenes.split(",")], args.frames, (w, h), Path(args.out), peers, args.seed,
+          args.reuse_peer)
     return 0
 
 
