@@ -117,22 +117,27 @@ def _get(m: dict | None, *path: str) -> float | None:
 
 
 def format_ablation(rows: dict) -> str:
-    """Returns a markdown table: registered ratio, accuracy and relation counts per set."""
-    head = ("| set | registered | centre err (% diam.) | rot. err med (deg) | corner reproj (px) "
-            "| line-surface med (m) | relations (o/p/j/f) |")
+    """Returns a markdown table: registered ratio, accuracy and relation counts per set.
+
+    Errors as ``panosfm eval`` states them: camera centres after a similarity
+    (Umeyama) alignment, relative to the true trajectory's diameter; rotations
+    after a rotation-only alignment; corner reprojection by the paper's protocol.
+    """
+    head = ("| set | registered | centre err. median (% diam.) | rotation err. median (deg) "
+            "| corner reproj. mean (px) | line-surface median (m) | relations (o/p/j/f) |")
     lines = [head, "|" + "---|" * 7]
 
-    def fmt(v, spec):
-        return "n/a" if v is None else format(v, spec)
+    def fmt(v, spec, k=1.0):
+        return "n/a" if v is None else format(k * v, spec)
 
     for name, r in rows.items():
         m = r.get("metrics")
         rel = r["relations"]
         lines.append(
             f"| {name} | {100 * r['registered_ratio']:.1f} % "
-            f"| {fmt(_get(m, 'centers', 'relative_error_pct'), '.2f')} "
-            f"| {fmt(_get(m, 'rotations', 'median_deg'), '.3f')} "
-            f"| {fmt(_get(m, 'corners', 'mean_px'), '.2f')} "
-            f"| {fmt(_get(m, 'lines', 'median_surface_distance_m'), '.3f')} "
+            f"| {fmt(_get(m, 'center_error_rel', 'median'), '.2f', 100.0)} "
+            f"| {fmt(_get(m, 'rotation_error_rotalign_deg', 'median'), '.3f')} "
+            f"| {fmt(_get(m, 'reprojection_px', 'mean'), '.2f')} "
+            f"| {fmt(_get(m, 'lines', 'distance_m', 'median'), '.3f')} "
             f"| {rel.get('orthogonal', 0)}/{rel.get('parallel', 0)}/{rel.get('junction', 0)}/{rel.get('floor', 0)} |")
     return "\n".join(lines)

@@ -98,7 +98,7 @@ def _line(r: dict) -> str:
     if "error" in r:
         return f"FAILED ({r['error']})"
     return (f"registered {100 * (_m(r, 'registered_ratio') or 0):.1f} %, "
-            f"corner reproj {_m(r, 'corners', 'mean_px')}, wall {r['wall_s']} s")
+            f"corner reproj {_m(r, 'reprojection_px', 'mean')}, wall {r['wall_s']} s")
 
 
 def format_bench(record: dict) -> str:
@@ -108,21 +108,23 @@ def format_bench(record: dict) -> str:
 
     rows = [f"Benchmark {record['date']}, {record['machine']}, {record['frames']} frames at "
             f"{record['size'][0]}x{record['size'][1]}", "",
-            "| scene | method | registered | centre err (% diam.) | rot. err med (deg) | corner reproj mean (px) "
-            "| line-surface med (m) | edges recovered | seconds | peak MB |",
+            "| scene | method | registered | centre err. median (% diam., sim3) | rot. err. median (deg) "
+            "| corner reproj. mean (px) "
+            "| line-surface median (m) | edges recovered | seconds | peak MB |",
             "|" + "---|" * 10]
     for scene, entry in record["scenes"].items():
         for method, r in entry.items():
             if "error" in r:
                 rows.append(f"| {scene} | {method} | failed: {r['error']} |" + " |" * 7)
                 continue
+            cen = _m(r, "center_error_rel", "median")
             rows.append(
                 f"| {scene} | {method} | {f(100 * (_m(r, 'registered_ratio') or 0), '.1f')} % "
-                f"| {f(_m(r, 'centers', 'relative_error_pct'), '.2f')} "
-                f"| {f(_m(r, 'rotations', 'median_deg'), '.3f')} "
-                f"| {f(_m(r, 'corners', 'mean_px'), '.2f')} "
-                f"| {f(_m(r, 'lines', 'median_surface_distance_m'), '.3f')} "
-                f"| {f(_m(r, 'lines', 'recovered_ratio'), '.2f')} "
+                f"| {f(None if cen is None else 100 * cen, '.2f')} "
+                f"| {f(_m(r, 'rotation_error_rotalign_deg', 'median'), '.3f')} "
+                f"| {f(_m(r, 'reprojection_px', 'mean'), '.2f')} "
+                f"| {f(_m(r, 'lines', 'distance_m', 'median'), '.3f')} "
+                f"| {f(_m(r, 'lines', 'recovered_share'), '.2f')} "
                 f"| {r['wall_s']:.1f} | {f(r.get('peak_memory_mb'), '.0f')} |")
     return "\n".join(rows)
 
