@@ -116,7 +116,7 @@ class LinearConfig:
     robust_k: float = 2.385  # Cauchy constant, in robust sigmas (1.4826 * median |residual|)
     floor_tolerance: float = 0.0  # IRLS: floor lines this share of the camera-to-floor distance ABOVE the floor are downweighted (0: never)
     motion_weight: float = 0.3  # body-motion prior on consecutive centres (rows in m, like colinearity; sigma_c / sigma_accel); 0 = paper
-    motion_order: int = 2  # 2: T_a - 2 T_b + T_c ~ 0 (smooth velocity); 1: T_a - T_b ~ 0
+    motion_order: int = 2  # 2: velocity constant in a frame turning with the camera heading (linear.py); 1: T_a - T_b ~ 0
     motion_max_gap: int = 3  # frames: no motion row across a larger gap between registered frames
 
 

@@ -1,5 +1,7 @@
 """Tests of the linear SfM solve (paper §3.3) on image-free synthetic problems with known answers."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -40,9 +42,12 @@ def _line_errors(p, sol, shift):
 def clean():
     return make_problem("living", 48, (480, 270), seed=0, pixel_noise_px=0.0)
 
+PAPER = dict(motion_weight=0.0)  # the paper's model: exact on noise-free data
+
+
 def test_exact_recovery_noise_free_metric(clean):
     p = clean
-    sol = solve_linear(p.preprocessed, p.tracks, p.relations, p.camera, LinearConfig(camera_height_m=_height(p)))
+    sol = solve_linear(p.preprocessed, p.tracks, p.relations, p.camera, LinearConfig(camera_height_m=_height(p), **PAPER))
     reg = sol.registered
     assert sol.metric and reg.mean() >= 0.9
     assert np.all(np.isnan(sol.centers[~reg])) and np.all(np.isfinite(sol.centers[reg]))
@@ -77,7 +82,7 @@ def test_noisy_recovery_within_centimetres():
 
 def test_scale_without_camera_height(clean):
     p = clean
-    sol = solve_linear(p.preprocessed, p.tracks, p.relations, p.camera, LinearConfig())
+    sol = solve_linear(p.preprocessed, p.tracks, p.relations, p.camera, LinearConfig(**PAPER))
     assert not sol.metric and sol.residuals["scale"] == "camera_to_floor"
     reg = sol.registered
     # documented normalisation: the mean camera-to-floor distance is 1
@@ -89,7 +94,7 @@ def test_scale_without_camera_height(clean):
     r = p.relations
     keep = r.kind != FLOOR
     nofloor = Relations(r.kind[keep], r.track_a[keep], r.track_b[keep], r.normal_axis[keep], r.support[keep])
-    sol2 = solve_linear(p.preprocessed, p.tracks, nofloor, p.camera, LinearConfig(camera_height_m=1.5))
+    sol2 = solve_linear(p.preprocessed, p.tracks, nofloor, p.camera, LinearConfig(camera_height_m=1.5, **PAPER))
     assert not sol2.metric and sol2.residuals["scale"] == "mean_depth"
     reg2 = sol2.registered
     s2, R2, t2 = _umeyama(sol2.centers[reg2], p.gt_centers[reg2])
@@ -145,3 +150,74 @@ def test_zero_translation_baseline(clean):
                        LinearConfig(camera_height_m=_height(p), zero_translation=True))
     assert np.allclose(sol.centers[sol.registered], 0.0)
     assert sol.lines.valid.sum() > 0
+
+
+def _fragment(p, piece):
+    """Returns (Tracks, Relations): every track cut into pieces of ``piece`` consecutive frames, as the
+    real tracker produces; a pair relation is kept between pieces seen in a common frame."""
+    tr, rel = p.tracks, p.relations
+    fr = p.preprocessed.segments.frame
+    on = np.flatnonzero(tr.track_of >= 0)
+    order = on[np.lexsort((fr[on], tr.track_of[on]))]
+    t = tr.track_of[order].astype(np.int64)
+    first = np.searchsorted(t, t)  # index of the track's first observation (t is sorted)
+    key = t * 100000 + (np.arange(len(t)) - first) // piece
+    uk, new = np.unique(key, return_inverse=True)
+    parent = uk // 100000
+    track_of = np.full(len(tr.track_of), -1, np.int32)
+    track_of[order] = np.where(np.bincount(new)[new] >= 2, new, -1)
+    F = p.n_frames
+    seen = np.zeros((len(uk), F), bool)
+    seen[new, fr[order]] = True
+    # relation r between tracks (a, b) -> pieces (i of a, j of b) sharing a frame
+    ri, ii = np.nonzero(rel.track_a[:, None] == parent[None, :])
+    fl = rel.kind[ri] == FLOOR
+    out = [(ri[fl], ii[fl], np.full(int(fl.sum()), -1))]
+    rp, ip = ri[~fl], ii[~fl]
+    rj, jj = np.nonzero(rel.track_b[rp][:, None] == parent[None, :])
+    share = np.any(seen[ip[rj]] & seen[jj], axis=1)
+    out.append((rp[rj[share]], ip[rj[share]], jj[share]))
+    r_idx = np.concatenate([o[0] for o in out])
+    a = np.concatenate([o[1] for o in out])
+    b = np.concatenate([o[2] for o in out])
+    rels = Relations(rel.kind[r_idx], a.astype(rel.track_a.dtype), b.astype(rel.track_b.dtype),
+                     rel.normal_axis[r_idx], rel.support[r_idx])
+    return Tracks(track_of, tr.axis[parent].astype(np.int8)), rels, parent
+
+
+def test_fragmented_tracks_need_the_motion_prior():
+    """Short tracks (4 frames, as the real tracker gives) barely constrain depth: with noisy
+    segments and rotations the paper's solve drifts; the body-motion prior keeps it at the
+    long-track accuracy. Measured (office, 120 frames): 48 % of the diameter without, 0.7 % with."""
+    p = make_problem("office", 120, (640, 360), seed=0, pixel_noise_px=0.5, rot_noise_deg=0.1)
+    tracks, rel, parent = _fragment(p, 4)
+    assert tracks.n > 3 * p.tracks.n
+    errs = {}
+    for name, cfg in (("paper", LinearConfig(camera_height_m=_height(p), **PAPER)),
+                      ("prior", LinearConfig(camera_height_m=_height(p)))):
+        sol = solve_linear(p.preprocessed, tracks, rel, p.camera, cfg)
+        reg = sol.registered
+        assert reg.mean() >= 0.8
+        s, R, t = _umeyama(sol.centers[reg], p.gt_centers[reg])
+        e = np.linalg.norm((s * (R @ sol.centers[reg].T)).T + t - p.gt_centers[reg], axis=1)
+        diameter = np.max(np.linalg.norm(p.gt_centers[:, None] - p.gt_centers[None], axis=2))
+        errs[name] = np.median(e) / diameter
+        if name == "prior":
+            assert abs(s - 1) < 0.05
+            shift = p.gt_centers[reg].mean(0) - sol.centers[reg].mean(0)
+            to_line, _ = _line_errors(SimpleNamespace(gt_track_lines=p.gt_track_lines[parent]), sol, shift)
+            assert np.median(to_line) < 0.02
+    assert errs["prior"] < 0.02
+    assert errs["paper"] > 5 * errs["prior"]
+
+
+def test_motion_prior_bias_is_small_on_noise_free_data(clean):
+    """The prior (exact for a uniform turn on a circle) only slightly biases a noise-free solve whose
+    spin has a varying speed, bob, pitch and roll (48 frames: ~8 degrees per frame)."""
+    p = clean
+    sol = solve_linear(p.preprocessed, p.tracks, p.relations, p.camera, LinearConfig(camera_height_m=_height(p)))
+    reg = sol.registered
+    first = np.flatnonzero(reg)[0]
+    shift = p.gt_centers[first] - sol.centers[first]
+    err = np.linalg.norm(sol.centers[reg] + shift - p.gt_centers[reg], axis=1)
+    assert np.median(err) < 1e-3 and err.max() < 5e-3
