@@ -70,6 +70,8 @@ class TrackingConfig:
     match_angle_deg: float = 1.0  # angle difference between matched segments
     min_track_length: int = 2  # tracks with fewer segments are dropped
     bridge_angle_deg: float = 0.0  # >0: also link track ENDS across frames whose axes are within this (0: paper)
+    match_angle_px: float = 1.0  # >0: angle tolerance max(match_angle_deg, atan(this / shorter length)) (0: paper)
+    colinear_px: float = 1.0  # >0: colinear pieces of one frame (within this) are matched as one (0: paper)
 
 
 @dataclass(frozen=True)

@@ -55,8 +55,71 @@ def _lines(endpoints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return d, np.concatenate([n, -np.sum(n * endpoints[:, :2], axis=1, keepdims=True)], axis=1)
 
 
+def colinear_groups(
+    segments: Segments, labels: np.ndarray, dist_px: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns (representative segment id (S,), merged endpoints (S, 4)) of colinear pieces per frame (supplement §3).
+
+    A deviation that keeps tracks long: LSD often cuts one image line into
+    pieces (occlusion, texture), and a track holds one segment per frame, so
+    the pieces used to split the track. Within each frame, Manhattan segments
+    of one label are grouped (connected components) when both endpoints of the
+    shorter are within ``dist_px`` of the longer one's line. Each group is
+    represented by its longest piece; ``merged[rep]`` spans the extreme
+    projections of all the group's endpoints on the representative's line
+    (used for matching only). Non-Manhattan segments and pieces that are their
+    own group map to themselves. ``dist_px`` <= 0 disables grouping.
+    """
+    S = segments.n
+    rep = np.arange(S)
+    ends = segments.endpoints.astype(np.float64)
+    merged = ends.copy()
+    if S == 0 or dist_px <= 0:
+        return rep, merged
+    length = np.linalg.norm(ends[:, 2:] - ends[:, :2], axis=1)
+    d, L = _lines(ends)
+    src, dst = [], []
+    for f in range(len(segments.frame_offsets) - 1):
+        m = np.flatnonzero(labels[segments.of_frame(f)] >= 0) + segments.frame_offsets[f]
+        if len(m) < 2:
+            continue
+        e = ends[m]
+        h0 = np.concatenate([e[:, :2], np.ones((len(m), 1))], axis=1)
+        h1 = np.concatenate([e[:, 2:], np.ones((len(m), 1))], axis=1)
+        far = np.maximum(np.abs(L[m] @ h0.T), np.abs(L[m] @ h1.T))  # [i, j]: j's farther endpoint to i's line
+        longer = length[m][:, None] >= length[m][None, :]
+        ok = longer & (far < dist_px) & (labels[m][:, None] == labels[m][None, :])
+        np.fill_diagonal(ok, False)
+        i, j = np.nonzero(ok)
+        src.append(m[i])
+        dst.append(m[j])
+    if not src or sum(len(x) for x in src) == 0:
+        return rep, merged
+    a, b = np.concatenate(src), np.concatenate(dst)
+    _, comp = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(S, S)), directed=False)
+    # representative: the longest piece of each component
+    order = np.lexsort((-length, comp))
+    first = np.r_[True, comp[order][1:] != comp[order][:-1]]
+    rep_of_comp = np.empty(comp.max() + 1, dtype=np.int64)
+    rep_of_comp[comp[order][first]] = order[first]
+    rep = rep_of_comp[comp]
+    # merged extent along the representative's line
+    p0, dr = ends[rep, :2], d[rep]
+    t0 = np.sum((ends[:, :2] - p0) * dr, axis=1)
+    t1 = np.sum((ends[:, 2:] - p0) * dr, axis=1)
+    lo = np.full(S, np.inf)
+    hi = np.full(S, -np.inf)
+    np.minimum.at(lo, rep, np.minimum(t0, t1))
+    np.maximum.at(hi, rep, np.maximum(t0, t1))
+    grouped = np.flatnonzero(np.bincount(rep, minlength=S) > 1)
+    merged[grouped] = np.concatenate(
+        [ends[grouped, :2] + lo[grouped, None] * d[grouped], ends[grouped, :2] + hi[grouped, None] * d[grouped]], axis=1)
+    return rep, merged
+
+
 def match_pair(
-    ea: np.ndarray, la: np.ndarray, eb: np.ndarray, lb: np.ndarray, H: np.ndarray, dist_px: float, angle_deg: float
+    ea: np.ndarray, la: np.ndarray, eb: np.ndarray, lb: np.ndarray, H: np.ndarray, dist_px: float, angle_deg: float,
+    angle_px: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Returns (index in a, index in b, distance px) of mutual-best segment matches between two frames.
 
@@ -66,6 +129,10 @@ def match_pair(
     ``dist_px``; then each keeps only its mutual best, ranked by a stricter
     distance (the farther endpoint of the better-fitting segment from the
     other's line) so that a nearby parallel line loses to the true one.
+    With ``angle_px`` > 0 the angle tolerance of a pair grows for short
+    segments to max(``angle_deg``, atan(``angle_px`` / shorter length)): the
+    direction of a 40 px segment is only known to ~1.4 degrees at 1 px of
+    endpoint noise (a deviation; long segments keep the paper's 1 degree).
     """
     wa = _warp(H, ea.astype(np.float64))
     da, La = _lines(wa)
@@ -78,7 +145,12 @@ def match_pair(
     gate = np.minimum.reduce([d_a0, d_a1, d_b0, d_b1])  # the paper's distance
     # ranking score: the worse endpoint of the better-fitting segment (whole segment near the other's line)
     score = np.minimum(np.maximum(d_a0, d_a1), np.maximum(d_b0, d_b1))
-    ok = (la[:, None] == lb[None, :]) & (cos > np.cos(np.radians(angle_deg))) & (gate < dist_px)
+    tol = np.full(cos.shape, np.radians(angle_deg))
+    if angle_px > 0:
+        short = np.minimum(np.linalg.norm(wa[:, 2:] - wa[:, :2], axis=1)[:, None],
+                           np.linalg.norm(eb64[:, 2:] - eb64[:, :2], axis=1)[None, :])
+        tol = np.maximum(tol, np.arctan(angle_px / np.maximum(short, 1e-9)))
+    ok = (la[:, None] == lb[None, :]) & (cos > np.cos(tol)) & (gate < dist_px)
     cost = np.where(ok, score, np.inf)
     if cost.size == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
@@ -158,7 +230,11 @@ def track_lines(
     within that wider angle are matched too, nearest in time first, and a
     mutual-best match (over ALL segments of both frames) is kept only between
     a segment with no later match closer in time and one with no earlier
-    one: track ends are bridged, continued tracks are never re-linked. ``image_size``
+    one: track ends are bridged, continued tracks are never re-linked. With
+    ``colinear_px`` > 0, colinear pieces of one image line in one frame
+    (:func:`colinear_groups`) are matched as ONE observation spanning all of
+    them, and only the longest piece joins the track (the others stay -1), so
+    a track still holds at most one segment per frame. ``image_size``
     (w, h) sets the distance threshold's min(w, h); by default it is taken
     from the principal point (image centre).
     """
@@ -176,8 +252,10 @@ def track_lines(
     F = len(R_wc)
     pairs = frame_pairs(R_wc, cfg.axis_angle_deg)
     bridges = _bridge_pairs(R_wc, cfg.bridge_angle_deg, pairs)
-    idx = [np.flatnonzero(manhattan[segments.of_frame(f)]) + segments.frame_offsets[f] for f in range(F)]
-    ends, labs = segments.endpoints, labels
+    rep, ends = colinear_groups(segments, labels, cfg.colinear_px)
+    head = manhattan & (rep == np.arange(S))  # one observation per group of colinear pieces
+    idx = [np.flatnonzero(head[segments.of_frame(f)]) + segments.frame_offsets[f] for f in range(F)]
+    labs = labels
     fwd_gap = np.full(S, np.iinfo(np.int64).max)  # smallest frame gap to a later matched frame
     bwd_gap = np.full(S, np.iinfo(np.int64).max)  # ... to an earlier one
     src, dst, wts = [], [], []
@@ -186,7 +264,8 @@ def track_lines(
         if len(ia) == 0 or len(ib) == 0:
             return
         H = rotation_homography(K, R_wc[i], R_wc[j])
-        a, b, d = match_pair(ends[ia], labs[ia], ends[ib], labs[ib], H, dist_px, cfg.match_angle_deg)
+        a, b, d = match_pair(ends[ia], labs[ia], ends[ib], labs[ib], H, dist_px, cfg.match_angle_deg,
+                             cfg.match_angle_px)
         if bridge:  # mutual best among ALL segments, then kept only between a track end and a track start
             g = j - i
             end = (fwd_gap[ia[a]] >= g) & (bwd_gap[ib[b]] >= g)
