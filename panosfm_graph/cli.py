@@ -44,7 +44,7 @@ def _add_config_flags(p: argparse.ArgumentParser) -> None:
     g.add_argument("--max-frames", type=int, default=None, metavar="N", help="use at most N frames")
     g.add_argument("--scale", type=float, default=None, help="downscale frames and intrinsics by this factor")
     g.add_argument("--normals", choices=["model", "orientation-map", "oracle"], default=None,
-                   help="surface-normal source (default: model, falling back to orientation-map)")
+                   help="surface-normal source (default: orientation-map; 'model' runs the shipped or --normal-model ONNX network)")
     g.add_argument("--normal-model", default=None, metavar="ONNX", help="run your own ONNX normal model")
     g.add_argument("--camera-height", type=float, default=None, metavar="M",
                    help="camera height above the floor in metres: makes the scale metric")
