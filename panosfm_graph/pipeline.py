@@ -12,10 +12,12 @@ stages it affects.
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import logging
 import platform
 import resource
 import shutil
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -141,6 +143,8 @@ def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config =
     if stop_after is not None and stop_after not in STAGES:
         raise InputError(f"unknown stage {stop_after!r}; stages are {', '.join(STAGES)}")
     check_output_dir(out_dir)
+    if rerun:  # importing rerun takes ~1 s of Python; do it while detection's workers keep the cores busy
+        threading.Thread(target=importlib.import_module, args=("rerun",), daemon=True).start()
     timings: dict[str, float] = {}
     resumed: list[str] = []
     with stage("load", timings):
