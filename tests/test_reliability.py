@@ -116,29 +116,11 @@ def reap(proc: subprocess.Popen, timeout: float = 300) -> tuple[int, str]:
     return proc.returncode, err
 
 
-# A run that SIGKILLs itself at one chosen moment (argv[1]): "bundle_adjust" (as the solve starts),
-# "export" (after sparse/ is written into the temporary directory), "swap" (the old result already
-# renamed to the backup, the new one not yet in place).
-KILLER = r"""
-import os, signal, sys
-import panosfm_graph.export as export, panosfm_graph.graph as graph
-where = sys.argv[1]
-def die(*a, **k):
-    os.kill(os.getpid(), signal.SIGKILL)
-if where == "bundle_adjust":
-    graph.bundle_adjust = die
-elif where == "export":
-    export.write_lines_ply = die
-elif where == "swap":
-    real = os.rename
-    def rename(src, dst, *a, **k):
-        if ".tmp-" in os.path.basename(str(src)):
-            die()
-        return real(src, dst, *a, **k)
-    os.rename = rename
-from panosfm_graph.cli import main
-sys.exit(main(sys.argv[2:]))
-"""
+# A run that SIGKILLs itself at one chosen moment: "bundle_adjust" (as the solve starts), "export"
+# (after sparse/ is written into the temporary directory), "swap" (the old result already renamed
+# to the backup, the new one not yet in place). Shared with tools/bench_reliability.py.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+from bench_reliability import KILLER  # noqa: E402
 
 
 # --------------------------------------------------------------------------- fixtures
