@@ -97,8 +97,9 @@ def run_ablation(capture_dir: str | Path, out_dir: str | Path, sets: str | list[
         p = out_dir / name.replace(" ", "_").replace("+", "-") / "views" / "topdown.png"
         img = cv2.imread(str(p)) if p.exists() else None
         if img is not None:
-            img = cv2.resize(img, (480, int(480 * img.shape[0] / img.shape[1])))
-            cv2.putText(img, name, (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 0), 2, cv2.LINE_AA)
+            img = cv2.resize(img, (480, int(480 * img.shape[0] / img.shape[1])), interpolation=cv2.INTER_AREA)
+            img = cv2.copyMakeBorder(img, 36, 0, 0, 0, cv2.BORDER_CONSTANT, value=(255, 255, 255))
+            cv2.putText(img, name, (10, 26), cv2.FONT_HERSHEY_SIMPLEX, 0.75, (0, 0, 0), 2, cv2.LINE_AA)
             tiles.append(img)
     if tiles:
         h = max(t.shape[0] for t in tiles)

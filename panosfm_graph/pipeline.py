@@ -272,6 +272,10 @@ def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
     if not result.linear.registered.any():  # nothing to adjust: the result says so (0 frames registered)
         log.warning("the linear solve registered no frame: bundle adjustment skipped")
         return result.linear
+    if config.linear.zero_translation:
+        # the paper's baseline keeps every camera centre at the origin; BA would move them
+        log.info("zero-translation baseline: bundle adjustment skipped, the linear solve is the result")
+        return result.linear
     if config.graph.incremental_batch:
         batches = bundle_adjust_incremental(pre, result.tracks, result.relations, result.linear,
                                             config.graph, on_batch=on_batch)
