@@ -22,7 +22,8 @@ import numpy as np
 
 
 def run_peer(capture_dir: str | Path, out_dir: str | Path, mapper: str = "incremental",
-             every_k: int = 1, max_frames: int | None = None, overlap: int = 10) -> dict:
+             every_k: int = 1, max_frames: int | None = None, overlap: int = 10,
+             max_mapping_minutes: float | None = None) -> dict:
     """Returns the peer's summary after writing its reconstruction to ``out_dir``."""
     import cv2
     import pycolmap
@@ -65,6 +66,8 @@ def run_peer(capture_dir: str | Path, out_dir: str | Path, mapper: str = "increm
             opts.ba_refine_focal_length = False
             opts.ba_refine_principal_point = False
             opts.ba_refine_extra_params = False
+            if max_mapping_minutes:
+                opts.max_runtime_seconds = int(60 * max_mapping_minutes)
             models = pycolmap.incremental_mapping(db, images, sparse_tmp, options=opts)
         elif mapper == "global":
             opts = pycolmap.GlobalPipelineOptions()
@@ -88,6 +91,7 @@ def run_peer(capture_dir: str | Path, out_dir: str | Path, mapper: str = "increm
             "frames": {"total": capture.n_frames, "registered": int(n_reg),
                        "registered_ratio": n_reg / max(capture.n_frames, 1)},
             "models": len(models),
+            "max_mapping_minutes": max_mapping_minutes,
             "metric": False,
             "scale": "arbitrary",
             "seconds": {"features": round(t_feat, 2), "matching": round(t_match, 2),
@@ -107,13 +111,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--mapper", choices=["incremental", "global"], default="incremental")
     p.add_argument("--every", type=int, default=1)
     p.add_argument("--max-frames", type=int, default=None)
+    p.add_argument("--max-mapping-minutes", type=float, default=None,
+                   help="stop COLMAP's incremental mapper after this long (it can grind on degenerate spins)")
     args = p.parse_args(argv)
     try:
         import pycolmap  # noqa: F401
     except ImportError:
         print("peer_colmap: needs pycolmap (pip install -e '.[peer]')", file=sys.stderr)
         return 2
-    summary = run_peer(args.capture, args.out, args.mapper, args.every, args.max_frames)
+    summary = run_peer(args.capture, args.out, args.mapper, args.every, args.max_frames,
+                       max_mapping_minutes=args.max_mapping_minutes)
     print(json.dumps(summary, indent=2))
     return 0
 
