@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+PEER_MAX_MINUTES = 8  # COLMAP's incremental mapper can grind for half an hour on a degenerate spin
 
 
 def _run(cmd: list[str]) -> tuple[int, float, str]:
@@ -60,7 +61,7 @@ def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peer
                 code, err = 0, ""
             else:
                 code, secs, err = _run([sys.executable, str(HERE / "peer_colmap.py"), str(cap), str(pdir),
-                                        "--mapper", mapper])
+                                        "--mapper", mapper, "--max-mapping-minutes", str(PEER_MAX_MINUTES)])
             entry[f"colmap-{mapper}"] = _score(pdir, cap, code, secs, err, evaluate_reconstruction)
             print(f"[{scene}] colmap-{mapper}: {_line(entry[f'colmap-{mapper}'])}", flush=True)
         record["scenes"][scene] = entry
