@@ -220,3 +220,32 @@ def test_rotation_prior_holds_rotations(problem):
     assert tight.residuals["factors"]["rotation_prior"] == p.n_frames and free.residuals["factors"]["rotation_prior"] == 0
     assert np.max(rotation_angle_deg(init.R_wc[reg], tight.R_wc[reg])) < 0.01
     assert np.median(rotation_angle_deg(init.R_wc[reg], free.R_wc[reg])) > 0.05
+
+
+def test_floor_gauge_keeps_mean_camera_height_when_first_camera_is_off(problem):
+    """The floor prior is relative to the first (fixed) camera; BA must keep the MEAN camera height (metric scale)."""
+    from panosfm_graph.data import FLOOR
+
+    p = problem
+    up = p.preprocessed.manhattan.directions[2]
+    fl = p.relations.track_a[p.relations.kind == FLOOR]
+    assert len(fl) > 0
+    floor_h = float(np.median(gt_solution(p).lines.taylor[fl] @ up))
+    height = float(np.mean(p.gt_centers @ up)) - floor_h  # true mean camera height above the floor
+    init = perturbed(p)
+    c = init.centers.copy()
+    c[0] = c[0] + 0.5 * up  # the linear solve misplaced the gauge camera (living: 3.56 m above the floor, mean 1.45)
+    # the initial solution's metric definition: the floor ``height`` below the mean camera height
+    h0 = float(np.mean(c @ up)) - height
+    init = dataclasses.replace(init, centers=c, residuals={"floor_height": h0})
+    sol = bundle_adjust(p.preprocessed, p.tracks, p.relations, init, dataclasses.replace(FAST, phases=(1,)))
+    reg = sol.registered
+    h1 = sol.residuals["floor_height"]
+    assert abs(np.mean(sol.centers[reg] @ up) - h1 - height) < 0.005 * height  # BA may drop an end frame
+    # scale against the truth: camera spacing matches GT within 3 % (without the rescale: ~ (height + 0.5) / height)
+    d_est = np.linalg.norm(np.diff(sol.centers[reg], axis=0), axis=1).sum()
+    d_gt = np.linalg.norm(np.diff(p.gt_centers[reg], axis=0), axis=1).sum()
+    lines_h = np.median(sol.lines.taylor[fl] @ up) - h1
+    assert abs(lines_h) < 0.02 * height, lines_h
+    assert abs(sol.residuals["height_rescale"] - 1.0) > 0.05  # the rescale did act
+    assert abs(d_est / d_gt - 1.0) < 0.1, d_est / d_gt
