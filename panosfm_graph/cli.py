@@ -182,7 +182,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("out", help="output directory (capture/ and reconstruction/ go inside)")
     d.add_argument("--scene", default="living")
     d.add_argument("--frames", type=int, default=300)
-    d.add_argument("--size", type=_parse_size, default=(640, 360))
+    d.add_argument("--size", type=_parse_size, default=(960, 540))
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--spawn", action="store_true", help="open the rerun viewer live")
     _add_config_flags(d)

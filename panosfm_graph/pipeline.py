@@ -357,12 +357,14 @@ def _export(tmp: Path, capture: Capture, segments: Segments, result: RunResult, 
 
 
 def run_demo(out_dir: str | Path, *, scene: str = "living", n_frames: int = 300,
-             size: tuple[int, int] = (640, 360), seed: int = 0, config: Config = Config(),
+             size: tuple[int, int] = (960, 540), seed: int = 0, config: Config = Config(),
              spawn: bool = False) -> RunResult:
     """Returns the result of synthesising a small capture into ``out/capture`` and reconstructing it.
 
     The demo gives the camera height (metric scale) and scores the result
     against the synthetic ground truth (``out/reconstruction/eval.json``).
+    The capture has no per-frame normal/depth maps (``gt_maps=False``), to
+    keep it small: ``--normals oracle`` needs a capture from ``panosfm synth``.
     """
     from .evaluate import evaluate_reconstruction
     from .synth import synthesize
@@ -379,7 +381,7 @@ def run_demo(out_dir: str | Path, *, scene: str = "living", n_frames: int = 300,
             shutil.rmtree(cap_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         log.info("synthesising a %d-frame %dx%d capture of scene %r", n_frames, size[0], size[1], scene)
-        synthesize(cap_dir, scene=scene, n_frames=n_frames, size=size, seed=seed)
+        synthesize(cap_dir, scene=scene, n_frames=n_frames, size=size, seed=seed, gt_maps=False)
         marker.write_text(json.dumps(wanted))
     if config.linear.camera_height_m is None:
         from .capture import load_capture
