@@ -156,7 +156,8 @@ def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config =
     def done(name: str) -> bool:
         return stop_after == name
 
-    key = stable_hash(capture_identity(capture), config.capture, config.detect)
+    # the version is part of every key: a cache never outlives the code that wrote it
+    key = stable_hash(__version__, capture_identity(capture), config.capture, config.detect)
     thumbs: list[bytes] | None = [] if rerun else None
     segments = _cached(cache, "detect", key, Segments, lambda: _detect(capture, config, thumbs), timings, resumed)
     if thumbs:  # made while detection decoded the frames; the rerun timeline shows them
