@@ -35,6 +35,7 @@ from scipy.spatial.distance import pdist
 from .data import Camera, Capture
 from .errors import InputError
 from .export import poses_for_frames, read_colmap_text, read_lines_ply
+from .geometry import rotation_angle_deg  # noqa: F401  (re-exported: part of the evaluation API)
 
 log = logging.getLogger(__name__)
 
@@ -42,17 +43,6 @@ log = logging.getLogger(__name__)
 # --------------------------------------------------------------------------------------
 # Alignment
 # --------------------------------------------------------------------------------------
-
-
-def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
-    """Returns the angles (deg) of R_a^T R_b for (..., 3, 3) stacks, accurate near 0 (atan2 form).
-
-    (``geometry.rotation_angle_deg``'s arccos of the trace loses ~1e-6 deg at zero.)
-    """
-    M = np.einsum("...ji,...jk->...ik", R_a, R_b)
-    sin2 = np.stack([M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]], axis=-1)
-    cos2 = np.trace(M, axis1=-2, axis2=-1) - 1.0
-    return np.degrees(np.arctan2(np.linalg.norm(sin2, axis=-1), cos2))
 
 
 def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:

@@ -36,10 +36,11 @@ def slerp_rotations(t_src: np.ndarray, R_src: np.ndarray, t_query: np.ndarray) -
 
 
 def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
-    """Returns the angle in degrees of ``R_a^T R_b`` for (..., 3, 3) stacks."""
+    """Returns the angles in degrees of ``R_a^T R_b`` for (..., 3, 3) stacks (atan2 form: exact near 0)."""
     M = np.einsum("...ji,...jk->...ik", R_a, R_b)
-    c = (np.trace(M, axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+    sin2 = np.stack([M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]], axis=-1)
+    cos2 = np.trace(M, axis1=-2, axis2=-1) - 1.0
+    return np.degrees(np.arctan2(np.linalg.norm(sin2, axis=-1), cos2))
 
 
 def angle_between_deg(a: np.ndarray, b: np.ndarray, unsigned: bool = False) -> np.ndarray:

@@ -9,20 +9,12 @@ from panosfm_graph.config import LinearConfig
 from panosfm_graph.data import FLOOR, Relations, Tracks
 from panosfm_graph.linear import solve_linear
 from panosfm_graph.synth.problem import make_problem
+from panosfm_graph.evaluate import umeyama
 
 
 def _height(p):
     """Returns the true mean camera height above the floor (m)."""
     return float(p.gt_centers[:, 2].mean() - p.scene.to_world(np.zeros(3))[2])
-
-def _umeyama(X, Y):
-    mx, my = X.mean(0), Y.mean(0)
-    U, d, Vt = np.linalg.svd((Y - my).T @ (X - mx) / len(X))
-    E = np.eye(3)
-    E[2, 2] = np.sign(np.linalg.det(U @ Vt))
-    R = U @ E @ Vt
-    s = (d * np.diag(E)).sum() / (X - mx).var(0).sum()
-    return s, R, my - s * R @ mx
 
 def _line_errors(p, sol, shift):
     """Returns (distance of estimated endpoints to the GT edge's line, to the GT segment) for valid lines (m)."""
@@ -69,7 +61,7 @@ def test_noisy_recovery_within_centimetres():
     sol = solve_linear(p.preprocessed, p.tracks, p.relations, p.camera, LinearConfig(camera_height_m=_height(p)))
     reg = sol.registered
     assert reg.mean() >= 0.9
-    s, R, t = _umeyama(sol.centers[reg], p.gt_centers[reg])
+    s, R, t = umeyama(sol.centers[reg], p.gt_centers[reg])
     err = np.linalg.norm((s * (R @ sol.centers[reg].T)).T + t - p.gt_centers[reg], axis=1)
     assert np.median(err) < 0.02 and abs(s - 1) < 0.05
     shift = p.gt_centers[reg].mean(0) - sol.centers[reg].mean(0)
@@ -87,7 +79,7 @@ def test_scale_without_camera_height(clean):
     reg = sol.registered
     # documented normalisation: the mean camera-to-floor distance is 1
     assert np.isclose(sol.centers[reg][:, 2].mean() - sol.residuals["floor_height"], 1.0, atol=1e-9)
-    s, R, t = _umeyama(sol.centers[reg], p.gt_centers[reg])
+    s, R, t = umeyama(sol.centers[reg], p.gt_centers[reg])
     h_reg = p.gt_centers[reg, 2].mean() - p.scene.to_world(np.zeros(3))[2]  # over the registered frames
     assert np.isclose(s, h_reg, rtol=1e-5)
     # no floor relations at all: one depth fixed, then mean depth = 1
@@ -97,7 +89,7 @@ def test_scale_without_camera_height(clean):
     sol2 = solve_linear(p.preprocessed, p.tracks, nofloor, p.camera, LinearConfig(camera_height_m=1.5, **PAPER))
     assert not sol2.metric and sol2.residuals["scale"] == "mean_depth"
     reg2 = sol2.registered
-    s2, R2, t2 = _umeyama(sol2.centers[reg2], p.gt_centers[reg2])
+    s2, R2, t2 = umeyama(sol2.centers[reg2], p.gt_centers[reg2])
     err = np.linalg.norm((s2 * (R2 @ sol2.centers[reg2].T)).T + t2 - p.gt_centers[reg2], axis=1)
     assert err.max() < 1e-3
 
@@ -129,7 +121,7 @@ def test_disconnected_halves_register_only_the_larger(clean):
     assert reg[:split].mean() >= 0.8
     assert np.all(np.isnan(sol.centers[split:]))
     # the height is a mean over the registered frames (here one half): compare up to a similarity
-    s, R, t = _umeyama(sol.centers[reg], p.gt_centers[reg])
+    s, R, t = umeyama(sol.centers[reg], p.gt_centers[reg])
     err = np.linalg.norm((s * (R @ sol.centers[reg].T)).T + t - p.gt_centers[reg], axis=1)
     assert err.max() < 1e-3 and abs(s - 1) < 0.01
 
@@ -198,7 +190,7 @@ def test_fragmented_tracks_need_the_motion_prior():
         sol = solve_linear(p.preprocessed, tracks, rel, p.camera, cfg)
         reg = sol.registered
         assert reg.mean() >= 0.8
-        s, R, t = _umeyama(sol.centers[reg], p.gt_centers[reg])
+        s, R, t = umeyama(sol.centers[reg], p.gt_centers[reg])
         e = np.linalg.norm((s * (R @ sol.centers[reg].T)).T + t - p.gt_centers[reg], axis=1)
         diameter = np.max(np.linalg.norm(p.gt_centers[:, None] - p.gt_centers[None], axis=2))
         errs[name] = np.median(e) / diameter

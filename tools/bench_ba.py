@@ -49,6 +49,7 @@ from panosfm_graph.config import GraphConfig
 from panosfm_graph.data import LineModel, Solution
 from panosfm_graph.geometry import rotation_angle_deg
 from panosfm_graph.graph import bundle_adjust, bundle_adjust_incremental
+from panosfm_graph.evaluate import umeyama
 
 
 def add_clutter(scene, n: int, seed: int = 0):
@@ -151,17 +152,6 @@ def perturbed_solution(p, seed: int = 0, center_sigma_m: float = 0.03, line_sigm
     c[0] = g.centers[0]
     return dataclasses.replace(g, R_wc=p.preprocessed.R_wc.copy(), centers=c,
                                lines=dataclasses.replace(g.lines, taylor=lam))
-
-
-def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Returns (s, R, t) minimising ||dst - (s R src + t)|| (Umeyama 1991)."""
-    ms, md = src.mean(0), dst.mean(0)
-    a, b = src - ms, dst - md
-    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
-    E = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    R = U @ E @ Vt
-    s = np.trace(np.diag(S) @ E) / np.mean(np.sum(a**2, 1))
-    return s, R, md - s * R @ ms
 
 
 def surface_distance(scene, pts_world: np.ndarray) -> np.ndarray:

@@ -27,18 +27,7 @@ import numpy as np
 from panosfm_graph.config import LinearConfig
 from panosfm_graph.linear import solve_linear
 from panosfm_graph.synth.problem import make_problem
-
-
-def umeyama(X: np.ndarray, Y: np.ndarray, with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
-    """Returns (s, R, t) minimising |s R X + t - Y|^2 over rows (Umeyama 1991)."""
-    mx, my = X.mean(0), Y.mean(0)
-    Xc, Yc = X - mx, Y - my
-    U, d, Vt = np.linalg.svd(Yc.T @ Xc / len(X))
-    E = np.eye(3)
-    E[2, 2] = np.sign(np.linalg.det(U @ Vt))
-    R = U @ E @ Vt
-    s = float((d * np.diag(E)).sum() / Xc.var(0).sum()) if with_scale else 1.0
-    return s, R, my - s * R @ mx
+from panosfm_graph.evaluate import umeyama
 
 
 def evaluate(problem, sol) -> dict:
