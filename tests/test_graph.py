@@ -8,24 +8,16 @@ import pytest
 
 import factors
 from panosfm_graph.config import GraphConfig
-from panosfm_graph.data import LineModel, Solution
+from panosfm_graph.data import Solution
 from panosfm_graph.geometry import rotation_angle_deg
 from panosfm_graph.graph import bundle_adjust, bundle_adjust_incremental, line_extents
 from panosfm_graph.synth.problem import make_problem
 
 
-def gt_solution(p) -> Solution:
-    A = p.preprocessed.manhattan.directions[p.tracks.axis]
-    lam = factors.taylor_from_point_direction(p.gt_track_lines[:, :3], A)
-    s = np.stack([np.sum((p.gt_track_lines[:, :3] - lam) * A, 1), np.sum((p.gt_track_lines[:, 3:] - lam) * A, 1)], 1)
-    lines = LineModel(lam, A, p.tracks.axis.copy(), np.sort(s, axis=1), np.ones(p.tracks.n, bool))
-    return Solution(p.gt_R_wc.copy(), p.gt_centers.copy(), np.ones(p.n_frames, bool), lines, p.camera, True, {})
-
-
 def perturbed(p, seed=0, center_sigma=0.03, line_sigma=0.05, along=0.0, camera=None) -> Solution:
     """GT with noisy centres and lines (first centre and floor-line heights exact: same gauge as GT)."""
     rng = np.random.default_rng(seed)
-    g = gt_solution(p)
+    g = p.gt_solution()
     A = g.lines.direction
     noise = rng.normal(size=g.lines.taylor.shape) * line_sigma
     lam = factors.taylor_from_point_direction(g.lines.taylor + noise, A) + along * A
@@ -42,7 +34,7 @@ def similarity_errors(p, sol):
     """
     reg, ok = sol.registered, sol.lines.valid
     src = np.vstack([sol.centers[reg], sol.lines.taylor[ok]])
-    dst = np.vstack([p.gt_centers[reg], gt_solution(p).lines.taylor[ok]])
+    dst = np.vstack([p.gt_centers[reg], p.gt_solution().lines.taylor[ok]])
     ms, md = src.mean(0), dst.mean(0)
     U, S, Vt = np.linalg.svd((dst - md).T @ (src - ms))
     E = np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))])
@@ -52,7 +44,7 @@ def similarity_errors(p, sol):
     diam = np.max(np.linalg.norm(p.gt_centers[:, None] - p.gt_centers[None], axis=2))
     ce = np.median(np.linalg.norm(al(sol.centers[reg]) - p.gt_centers[reg], axis=1)) / diam
     A = sol.lines.direction[ok]
-    d = al(sol.lines.taylor[ok]) - gt_solution(p).lines.taylor[ok]
+    d = al(sol.lines.taylor[ok]) - p.gt_solution().lines.taylor[ok]
     le = np.median(np.linalg.norm(d - np.sum(d * A, 1, keepdims=True) * A, axis=1))
     return ce, le
 
@@ -87,7 +79,7 @@ def test_ba_converges_close_to_ground_truth(problem):
     assert r["phases"]["phase1"]["cost_after"] < 0.01 * r["phases"]["phase1"]["cost_before"]
     assert abs(r["focal_px"] - p.camera.K[0, 0]) < 0.01 * p.camera.K[0, 0]
     # extents: the segments cover the GT edges' visible parts (inside the GT extent, up to noise)
-    g = gt_solution(p)
+    g = p.gt_solution()
     ok = sol.lines.valid
     assert np.median(np.abs(sol.lines.extent[ok] - g.lines.extent[ok])) < 0.1
     # the first and last frames see few lines: at most 2 of 40 left undetermined, the rest finite
@@ -230,7 +222,7 @@ def test_floor_gauge_keeps_mean_camera_height_when_first_camera_is_off(problem):
     up = p.preprocessed.manhattan.directions[2]
     fl = p.relations.track_a[p.relations.kind == FLOOR]
     assert len(fl) > 0
-    floor_h = float(np.median(gt_solution(p).lines.taylor[fl] @ up))
+    floor_h = float(np.median(p.gt_solution().lines.taylor[fl] @ up))
     height = float(np.mean(p.gt_centers @ up)) - floor_h  # true mean camera height above the floor
     init = perturbed(p)
     c = init.centers.copy()

@@ -46,7 +46,7 @@ import numpy as np
 
 import factors
 from panosfm_graph.config import GraphConfig
-from panosfm_graph.data import LineModel, Solution
+from panosfm_graph.data import Solution
 from panosfm_graph.geometry import rotation_angle_deg
 from panosfm_graph.graph import bundle_adjust, bundle_adjust_incremental
 from panosfm_graph.evaluate import umeyama
@@ -133,19 +133,10 @@ def fragment_tracks(p, max_obs: int):
                                relation_true=np.array(ktrue, bool))
 
 
-def gt_solution(p) -> Solution:
-    """Returns the ground-truth Solution of a synthetic problem (Taylor lines from the GT edges)."""
-    A = p.preprocessed.manhattan.directions[p.tracks.axis]
-    lam = factors.taylor_from_point_direction(p.gt_track_lines[:, :3], A)
-    s = np.stack([np.sum((p.gt_track_lines[:, :3] - lam) * A, 1), np.sum((p.gt_track_lines[:, 3:] - lam) * A, 1)], 1)
-    lines = LineModel(lam, A, p.tracks.axis.copy(), np.sort(s, axis=1), np.ones(p.tracks.n, bool))
-    return Solution(p.gt_R_wc.copy(), p.gt_centers.copy(), np.ones(p.n_frames, bool), lines, p.camera, True, {})
-
-
 def perturbed_solution(p, seed: int = 0, center_sigma_m: float = 0.03, line_sigma_m: float = 0.05) -> Solution:
     """Returns GT with noisy centres/lines (first centre exact) and the problem's noisy rotations."""
     rng = np.random.default_rng(seed)
-    g = gt_solution(p)
+    g = p.gt_solution()
     lam = factors.taylor_from_point_direction(g.lines.taylor + rng.normal(size=g.lines.taylor.shape) * line_sigma_m,
                                               g.lines.direction)
     c = g.centers + rng.normal(size=g.centers.shape) * center_sigma_m

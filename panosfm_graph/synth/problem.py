@@ -50,10 +50,12 @@ from ..data import (
     ORTHOGONAL,
     PARALLEL,
     Camera,
+    LineModel,
     ManhattanFrame,
     Preprocessed,
     Relations,
     Segments,
+    Solution,
     Tracks,
 )
 
@@ -81,6 +83,18 @@ class SyntheticProblem:
     @property
     def n_frames(self) -> int:
         return len(self.gt_centers)
+
+    def gt_solution(self) -> Solution:
+        """Returns the ground truth as a Solution: GT poses, Taylor lines from the GT edges (paper §3.4)."""
+        from factors import taylor_from_point_direction
+
+        A = self.preprocessed.manhattan.directions[self.tracks.axis]
+        ends = self.gt_track_lines
+        lam = taylor_from_point_direction(ends[:, :3], A)
+        s = np.stack([np.sum((ends[:, :3] - lam) * A, 1), np.sum((ends[:, 3:] - lam) * A, 1)], 1)
+        lines = LineModel(lam, A, self.tracks.axis.copy(), np.sort(s, axis=1), np.ones(self.tracks.n, bool))
+        return Solution(self.gt_R_wc.copy(), self.gt_centers.copy(), np.ones(self.n_frames, bool), lines,
+                        self.camera, True, {})
 
 
 def _all_boxes(scene) -> tuple[np.ndarray, np.ndarray]:
