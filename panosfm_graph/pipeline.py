@@ -289,9 +289,7 @@ def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
 
 def _summary(capture: Capture, segments: Segments, result: RunResult, config: Config,
              timings: dict[str, float], resumed: list[str], t_start: float) -> dict:
-    import gtsam
-    import cv2
-    import scipy
+    from .export import package_versions
 
     sol = result.solution
     pre = result.preprocessed
@@ -319,9 +317,7 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
         "resumed_stages": resumed,
         "peak_memory_mb": round(peak_memory_mb(), 1),
         "config": config.to_dict(),
-        "versions": {"python": platform.python_version(), "numpy": np.__version__,
-                     "gtsam": getattr(gtsam, "__version__", "?"), "opencv": cv2.__version__,
-                     "scipy": scipy.__version__},
+        "versions": {"python": platform.python_version(), **package_versions()},
     }
     if result.batches:
         summary["incremental_batches"] = [int(b.registered.sum()) for b in result.batches]
