@@ -45,6 +45,12 @@ Formulation choices (documented deviations are marked *):
   normals of its informative observations span 3D (smallest eigenvalue of their scatter >=
   ``min_view_eig``): each observation of a known line constrains the centre to one plane.
   (1) and (2) are iterated to a fixed point. Other frames get NaN centres and ``registered=False``.
+* Bridging* (``motion_bridge_deg`` > 0 with the motion prior on; off by default): a frame determined
+  along some Manhattan axes only (e.g. it sees vertical lines only, so its height is free) is also
+  registered when fully determined frames lie on both sides of it within that many degrees of turn;
+  every observing frame is then an unknown of the solve (no fixed-point cascade) and the motion prior
+  interpolates the missing coordinates. It never extrapolates past either end of the registered
+  sweep, so a disconnected half stays unregistered.
 """
 from __future__ import annotations
 
@@ -110,18 +116,49 @@ def _valid_relations(relations: Relations, axis: np.ndarray, config: LinearConfi
     return pair, floor
 
 
+def bridge_frames(full: np.ndarray, determined: np.ndarray, turned_deg: np.ndarray, bridge_deg: float) -> np.ndarray:
+    """Returns (F,) bool: frames fully determined, or whose undetermined axes the body-motion prior bridges.
+
+    ``full`` (F,): frames determined along every axis; ``determined`` (F, 3): frames determined
+    along each Manhattan axis (False for frames not to be considered at all). A frame with at least
+    one determined axis is bridged when, for each of its other axes k, a ``full`` frame lies on
+    EACH side of it (earlier and later) within ``bridge_deg`` of turn (``turned_deg``: cumulative
+    degrees turned): the motion prior then interpolates that coordinate over the gap, it never
+    extrapolates past the ends of the registered sweep.
+    """
+    F = len(full)
+    if bridge_deg <= 0 or F == 0:
+        return full.copy()
+    idx = np.arange(F)
+    prev_full = np.maximum.accumulate(np.where(full, idx, -1))  # latest full frame at or before f
+    next_full = np.minimum.accumulate(np.where(full, idx, F)[::-1])[::-1]  # earliest at or after f
+    has_prev = prev_full >= 0
+    has_next = next_full < F
+    turned = np.asarray(turned_deg, dtype=np.float64)
+    near = (has_prev & has_next
+            & (turned - turned[np.clip(prev_full, 0, F - 1)] <= bridge_deg)
+            & (turned[np.clip(next_full, 0, F - 1)] - turned <= bridge_deg))
+    return full | (near & determined.any(axis=1))
+
+
 def register_frames(n_frames: int, obs_frame: np.ndarray, obs_track: np.ndarray, obs_normal: np.ndarray,
                     track_axis: np.ndarray, rel_a: np.ndarray, rel_b: np.ndarray, rel_axis: np.ndarray,
-                    floor_track: np.ndarray, min_view_eig: float, max_iterations: int = 10) -> np.ndarray:
+                    floor_track: np.ndarray, min_view_eig: float, max_iterations: int = 10,
+                    turned_deg: np.ndarray | None = None, bridge_deg: float = 0.0,
+                    manhattan: np.ndarray = np.eye(3)) -> np.ndarray:
     """Returns (F,) bool: frames whose translation the linear solve can determine (paper §3.3).
 
     ``obs_*`` describe the tracked observations (frame, track, unit interpretation-plane normal
     ``N_axis x D``); ``rel_*`` the usable pair coplanarities (tracks, normal axis);
-    ``floor_track`` the tracks on the floor. See the module docstring for the two criteria.
+    ``floor_track`` the tracks on the floor. See the module docstring for the two criteria. With
+    ``bridge_deg`` > 0 (the body-motion prior is on) a frame determined along some axes only is
+    kept when :func:`bridge_frames` bridges the others; ``manhattan`` (rows: the axes) maps the
+    weak directions of criterion (2) onto axes.
     """
     F, T = n_frames, len(track_axis)
     kept = np.zeros(F, bool)
     kept[obs_frame] = True
+    turned = np.zeros(F) if turned_deg is None else np.asarray(turned_deg, dtype=np.float64)
     for _ in range(max_iterations):
         o = kept[obs_frame]
         n_obs = np.bincount(obs_track[o], minlength=T)
@@ -154,16 +191,46 @@ def register_frames(n_frames: int, obs_frame: np.ndarray, obs_track: np.ndarray,
             return np.zeros(F, bool)
         counts = np.bincount(inv)
         best = cls_id[np.argmax(counts)]  # np.argmax: first (earliest-labelled) class on ties
-        in_cls = np.all(lab == best, axis=1) & kept
         # (2) the interpretation planes of the frame's informative observations span 3D
         scatter = np.zeros((F, 3, 3))
         np.add.at(scatter, obs_frame[oi], obs_normal[oi, :, None] * obs_normal[oi, None, :])
-        eig_min = np.linalg.eigvalsh(scatter)[:, 0]
-        new = in_cls & (eig_min >= min_view_eig)
+        determined = (lab == best[None]) & kept[:, None] & ~weak_axes(scatter, min_view_eig, manhattan)
+        new = bridge_frames(determined.all(axis=1), determined, turned, bridge_deg)
+        if bridge_deg > 0:  # every frame stays in the solve (the motion prior holds it): no cascade
+            return new
         if np.array_equal(new, kept):
             break
         kept = new
     return kept
+
+
+def weak_axes(information: np.ndarray, min_eig: float, manhattan: np.ndarray = np.eye(3)) -> np.ndarray:
+    """Returns (F, 3) bool: the Manhattan axes along which each (3, 3) information matrix is weak.
+
+    Eigenvectors with eigenvalue below ``min_eig`` are weak directions; each is charged to the
+    Manhattan axis (rows of ``manhattan``) it is closest to, or to all three axes when it is not
+    within 25 degrees of any (a weak diagonal direction cannot be bridged axis by axis).
+    """
+    ev, evec = np.linalg.eigh(information)
+    weak = np.zeros((len(ev), 3), bool)
+    for j in range(3):  # eigenvalues in ascending order
+        low = ev[:, j] < min_eig
+        comp = np.abs(evec[:, :, j] @ np.asarray(manhattan, dtype=np.float64).T)  # (F, 3)
+        k = np.argmax(comp, axis=1)
+        aligned = comp[np.arange(len(ev)), k] >= np.cos(np.radians(25.0))
+        weak[low & aligned, k[low & aligned]] = True
+        weak[low & ~aligned] = True
+    return weak
+
+
+def turned_degrees(R_wc: np.ndarray) -> np.ndarray:
+    """Returns (F,) the cumulative angle (degrees) the camera has turned since the first frame."""
+    from .geometry import rotation_angle_deg
+
+    R = np.asarray(R_wc, dtype=np.float64)
+    if len(R) < 2:
+        return np.zeros(len(R))
+    return np.concatenate([[0.0], np.cumsum(rotation_angle_deg(R[:-1], R[1:]))])
 
 
 def _group_median(values: np.ndarray, groups: np.ndarray, n_groups: int) -> np.ndarray:
@@ -240,10 +307,18 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
         registered = np.zeros(F, bool)
         registered[o_frame] = True
     else:
-        registered = register_frames(F, o_frame, o_track, n_int, axis, r_a, r_b, r_k, f_t, config.min_view_eig)
+        bridge = config.motion_bridge_deg if config.motion_weight > 0 else 0.0
+        registered = register_frames(F, o_frame, o_track, n_int, axis, r_a, r_b, r_k, f_t, config.min_view_eig,
+                                     turned_deg=turned_degrees(pre.R_wc), bridge_deg=bridge, manhattan=M)
+    solved = registered.copy()
+    if not config.zero_translation and config.motion_weight > 0 and config.motion_bridge_deg > 0:
+        # every observing frame is an unknown: its observations still constrain the lines along the
+        # directions it is determined in, and the motion prior holds the rest; only ``registered``
+        # frames are reported
+        solved[o_frame] = True
 
-    # --- the system over the registered frames ---------------------------------------------
-    o_sel = registered[o_frame]
+    # --- the system over the solved frames -------------------------------------------------
+    o_sel = solved[o_frame]
     n_obs = np.bincount(o_track[o_sel], minlength=T)
     live = n_obs > 0
     rs = live[r_a] & live[r_b]
@@ -253,7 +328,7 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     rs &= in_sys[r_a] & in_sys[r_b]
     fs &= in_sys[f_t]
     o_sel &= in_sys[o_track]
-    frames = np.flatnonzero(registered)
+    frames = np.flatnonzero(solved)
     Fk = len(frames)
     frame_col = np.full(F, -1)
     frame_col[frames] = np.arange(Fk)
@@ -289,11 +364,14 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
         if config.zero_translation:
             fixed_val[:3 * Fk] = 0.0
         else:
-            fixed_val[tau_col(frames[0], np.arange(3))] = 0.0
+            gauge = np.flatnonzero(registered)
+            fixed_val[tau_col(gauge[0] if len(gauge) else frames[0], np.arange(3))] = 0.0
     ref_obs = -1
     if not use_floor and len(ob):
         # fix one depth: an observation in the first registered frame of its most observed track
-        cand = ob[o_frame[ob] == o_frame[ob].min()]
+        ob_reg = ob[registered[o_frame[ob]]]
+        ob_reg = ob_reg if len(ob_reg) else ob
+        cand = ob_reg[o_frame[ob_reg] == o_frame[ob_reg].min()]
         ref_obs = int(cand[np.argmax(n_obs[o_track[cand]])])
         t0 = o_track[ref_obs]
         tau0 = np.zeros(3)  # the reference frame's centre is the origin
@@ -400,12 +478,14 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
 
     # --- scale normalisation -----------------------------------------------------------------
     tau = x[:3 * Fk].reshape(Fk, 3)
+    reg_k = registered[frames]  # solved frames that are reported
+    ob_reg = registered[o_frame[ob]]
     if scale_mode == "metric":
-        s = H / (tau[:, _VERTICAL].mean() - h0)
+        s = H / (tau[reg_k, _VERTICAL].mean() - h0)
     elif scale_mode == "camera_to_floor":
-        s = 1.0 / (tau[:, _VERTICAL].mean() - h0)
+        s = 1.0 / (tau[reg_k, _VERTICAL].mean() - h0)
     else:
-        s = 1.0 / lam.mean() if len(lam) else 1.0
+        s = 1.0 / lam[ob_reg].mean() if np.any(ob_reg) else 1.0
     if not np.isfinite(s) or s <= 0:
         log.warning("linear: degenerate scale (%s); left unnormalised", s)
         s = 1.0
@@ -414,22 +494,24 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     tau = x[:3 * Fk].reshape(Fk, 3)
     h = x[col_h]
 
-    centers = np.full((F, 3), np.nan)
-    centers[frames] = tau @ M
+    centers_all = np.full((F, 3), np.nan)
+    centers_all[frames] = tau @ M
+    centers = np.where(registered[:, None], centers_all, np.nan)
 
-    # --- lines -------------------------------------------------------------------------------
-    P = centers[o_f] + lam[:, None] * D[ob]  # (n, 3) observation points (world)
+    # --- lines: from the observations of registered frames -----------------------------------
+    P = centers_all[o_f] + lam[:, None] * D[ob]  # (n, 3) observation points (world)
     Pm = P @ M.T
     coord = np.full((T, 3), 0.0)
     for k in range(3):
-        has_k = o_axis[ob] != k
+        has_k = (o_axis[ob] != k) & ob_reg
         coord[:, k] = _group_median(Pm[has_k, k], o_t[has_k], T)
     coord[np.arange(T), axis] = 0.0
-    valid = in_sys.copy()
+    n_obs_reg = np.bincount(o_t[ob_reg], minlength=T)
+    valid = in_sys & (n_obs_reg > 0) & (n_obs_reg + n_rel >= 2)
     valid &= np.isfinite(coord).all(axis=1)
     taylor = np.where(valid[:, None], coord @ M, np.nan)
     direction = M[axis]
-    extent = _extents(pre, camera, obs[ob], o_t, centers[o_f], taylor, direction, T)
+    extent = _extents(pre, camera, obs[ob][ob_reg], o_t[ob_reg], centers[o_f][ob_reg], taylor, direction, T)
     valid &= np.isfinite(extent).all(axis=1)
     lines = LineModel(taylor=taylor, direction=direction.copy(), axis=tracks.axis.astype(np.int8),
                       extent=extent, valid=valid)
@@ -440,7 +522,8 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
         "scale": scale_mode,
         "metric": scale_mode == "metric",
         "frames": int(F),
-        "registered": int(Fk),
+        "registered": int(registered.sum()),
+        "solved": int(Fk),
         "tracks_solved": int(len(tq)),
         "observations": int(len(ob)),
         "depths_at_bound": int(pinned.sum()),
@@ -465,7 +548,7 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     res["floor_count"] = int(np.sum(fs))
     res["seconds"] = time.perf_counter() - t_start
     log.info("linear: registered %d / %d frames, %d lines, colinearity rms %.3g (%s scale) in %.2f s",
-             Fk, F, int(valid.sum()), res["colinearity_rms"] or 0.0, scale_mode, res["seconds"])
+             int(registered.sum()), F, int(valid.sum()), res["colinearity_rms"] or 0.0, scale_mode, res["seconds"])
     return Solution(R_wc=np.asarray(pre.R_wc, dtype=np.float64).copy(), centers=centers, registered=registered,
                     lines=lines, camera=camera, metric=scale_mode == "metric", residuals=res)
 

@@ -213,3 +213,25 @@ def test_motion_prior_bias_is_small_on_noise_free_data(clean):
     shift = p.gt_centers[first] - sol.centers[first]
     err = np.linalg.norm(sol.centers[reg] + shift - p.gt_centers[reg], axis=1)
     assert np.median(err) < 1e-3 and err.max() < 5e-3
+
+
+def test_motion_prior_bridges_frames_without_horizontal_lines(clean):
+    p = clean
+    pre, tr = p.preprocessed, p.tracks
+    gap = np.arange(20, 25)  # five frames (~40 degrees of turn) that see vertical lines only
+    t_of = tr.track_of
+    frame = pre.segments.frame
+    horizontal = (t_of >= 0) & (tr.axis[np.maximum(t_of, 0)] != 2)
+    tracks = Tracks(np.where(horizontal & np.isin(frame, gap), -1, t_of).astype(np.int32), tr.axis)
+    cfg = LinearConfig(camera_height_m=_height(p))
+    strict = solve_linear(pre, tracks, p.relations, p.camera, cfg)
+    assert not strict.registered[gap].any()  # their heights are not determined by any line
+    bridged = solve_linear(pre, tracks, p.relations, p.camera, LinearConfig(camera_height_m=_height(p), motion_bridge_deg=45.0))
+    reg = bridged.registered
+    assert reg[gap].all() and reg.sum() > strict.registered.sum()
+    s, R, t = umeyama(bridged.centers[reg], p.gt_centers[reg])
+    err = np.linalg.norm((s * (R @ bridged.centers[reg].T)).T + t - p.gt_centers[reg], axis=1)
+    assert np.median(err) < 0.01 and err[np.isin(np.flatnonzero(reg), gap)].max() < 0.05
+    # a narrow bridge does not reach the middle of the gap
+    narrow = solve_linear(pre, tracks, p.relations, p.camera, LinearConfig(camera_height_m=_height(p), motion_bridge_deg=10.0))
+    assert not narrow.registered[22]

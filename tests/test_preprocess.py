@@ -21,7 +21,7 @@ from panosfm_graph.errors import InputError, TooFewLinesError
 from panosfm_graph.lines import preprocess, track_lines
 from panosfm_graph.lines.detect import detect_frame, detect_segments, merge_segments
 from panosfm_graph.lines.manhattan import label_segments, manhattan_frame, sphere_bins
-from panosfm_graph.lines.rotations import manhattan_factor, neighbour_pairs
+from panosfm_graph.lines.rotations import heading_drift, manhattan_factor, neighbour_pairs, rotate_heading
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 from bench_preprocess import evaluate, gt_edge_of_segments, rotation_errors  # noqa: E402
@@ -222,6 +222,28 @@ def test_neighbours_are_local_in_time():
     assert {(i, i + 1) for i in range(119)} <= set(map(tuple, pairs))
 
 
+def test_heading_drift_recovers_a_gyro_bias_despite_outliers():
+    rng = np.random.default_rng(3)
+    F = 200
+    t = np.linspace(0.0, 20.0, F)
+    R_true = Rotation.from_euler("zyx", np.c_[np.linspace(0, 6.6, F), rng.normal(0, 0.1, (F, 2))]).as_matrix()
+    true_drift = np.radians(0.15) * t  # a constant gyro bias: 3 degrees over 20 s
+    R_imu = rotate_heading(R_true, true_drift)
+    # refined rotations: the truth with 0.05 degree heading noise, plus ten frames badly off
+    noise = np.radians(rng.normal(0, 0.05, F))
+    noise[rng.choice(F, 10, replace=False)] += np.radians(2.0)
+    R_ref = rotate_heading(R_true, noise)
+    w = rng.uniform(0.5, 2.0, F)
+    w[:30] = 0.0  # frames without horizontal lines do not vote
+    est = heading_drift(R_ref, R_imu, t, w, degree=1)  # correction that maps the IMU onto the refined rotations
+    assert np.max(np.abs(np.degrees(est + true_drift))) < 0.05
+    # removing it leaves the IMU within its noise of the truth
+    err = np.degrees(np.abs(np.asarray([Rotation.from_matrix(a @ b.T).magnitude() for a, b in zip(rotate_heading(R_imu, est), R_true)])))
+    assert err.max() < 0.05
+    # off: no correction
+    assert np.all(heading_drift(R_ref, R_imu, t, w, degree=-1) == 0)
+
+
 def test_manhattan_frame_rotations_and_labels(spin):
     cap, pre = spin
     ev = evaluate(cap, pre, track_lines(cap, pre, Config()), gt_px=1.5)
@@ -387,3 +409,16 @@ def test_angle_tolerance_grows_for_short_segments():
     # 300 px long segments keep the 1 degree tolerance (atan(2 / 300) = 0.38 degrees)
     assert len(match_pair(seg(300, 0), lab, seg(300, 2), lab, H, 20.0, 1.0, angle_px=2.0)[0]) == 0
     assert len(match_pair(seg(300, 0), lab, seg(300, 0.5), lab, H, 20.0, 1.0, angle_px=2.0)[0]) == 1
+
+
+def test_image_colinear_lines_side_by_side_do_not_match():
+    from panosfm_graph.lines.tracking import match_pair
+
+    H = np.eye(3)
+    a = np.array([[100, 200, 300, 200]], np.float64)  # frame a: a piece on the left
+    right = np.array([[340, 200.5, 500, 200.5]], np.float64)  # frame b: a colinear piece further right
+    over = np.array([[250, 200.5, 420, 200.5]], np.float64)  # frame b: the same line, overlapping
+    lab = np.zeros(1, np.int8)
+    for piece, gap, expected in ((right, None, 1), (right, 0.0, 0), (right, 50.0, 1), (over, 0.0, 1)):
+        ia, ib, _ = match_pair(a, lab, piece, lab, H, dist_px=27.0, angle_deg=1.0, gap_px=gap)
+        assert len(ia) == expected, (piece, gap)

@@ -15,7 +15,7 @@ from ..config import Config
 from ..data import Capture, Preprocessed, Segments, Tracks
 from .detect import detect_segments
 from .manhattan import check_enough_manhattan, label_segments, manhattan_frame
-from .rotations import refine_rotations
+from .rotations import heading_drift, refine_rotations, rotate_heading
 from .tracking import track_lines as _track_lines
 
 log = logging.getLogger("panosfm.lines")
@@ -39,13 +39,22 @@ def refine_manhattan_and_rotations(segments: Segments, capture: Capture, config:
     K = capture.camera.K
     R_imu = np.asarray(capture.R_wc_imu, dtype=np.float64)
     R = R_imu.copy()
+    R_prior = R_imu  # the IMU with its estimated heading drift removed (config.rotation.drift_degree)
     mf = None
     for it in range(max(1, config.manhattan.iterations)):
         mf = manhattan_frame(segments, K, R, config.manhattan, reference=mf)
         labels = label_segments(segments, K, R, mf, config.manhattan)
         check_enough_manhattan(labels, config.manhattan)
-        R = refine_rotations(segments, labels, K, R_imu, mf, config.rotation, R_wc_init=R)
+        R = refine_rotations(segments, labels, K, R_prior, mf, config.rotation, R_wc_init=R)
+        if config.rotation.drift_degree >= 0:
+            horizontal = (labels >= 0) & (labels != 2)
+            weight = np.bincount(segments.frame[horizontal], segments.lengths[horizontal], minlength=capture.n_frames)
+            drift = heading_drift(R, R_imu, capture.timestamps, weight, config.rotation.drift_degree, mf.directions[2])
+            R_prior = rotate_heading(R_imu, drift, mf.directions[2])
+            log.info("IMU heading drift over the capture: %.2f deg", np.degrees(drift[-1] - drift[0]))
         log.info("preprocess iteration %d: %d Manhattan segments of %d", it + 1, int(np.sum(labels >= 0)), segments.n)
+    if config.rotation.drift_degree >= 0:  # the last rotations against the last drift estimate
+        R = refine_rotations(segments, labels, K, R_prior, mf, config.rotation, R_wc_init=R)
     mf = manhattan_frame(segments, K, R, config.manhattan, reference=mf)
     labels = label_segments(segments, K, R, mf, config.manhattan)
     check_enough_manhattan(labels, config.manhattan)

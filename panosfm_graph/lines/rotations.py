@@ -200,6 +200,62 @@ def refine_rotations(
     return np.stack([values.atRot3(k).matrix() for k in keys])
 
 
+def heading_drift(
+    R_wc: np.ndarray,
+    R_wc_imu: np.ndarray,
+    timestamps: np.ndarray,
+    weights: np.ndarray,
+    degree: int,
+    up: np.ndarray = np.array([0.0, 0.0, 1.0]),
+) -> np.ndarray:
+    """Returns (F,) the IMU's heading drift (rad) per frame: a polynomial in time fitted to the corrections.
+
+    A phone's attitude filter takes tilt from the accelerometer (it does not
+    drift) and heading from the integrated gyroscope, so a gyro bias makes
+    the heading drift about ``up``, smoothly in time (linearly for a
+    constant bias). The correction of frame i, the heading angle of
+    R_i R_imu,i^T, is fitted by weighted least squares (``weights``: how
+    well the frame's own horizontal Manhattan lines fix its heading) with a
+    polynomial of ``degree``, in two rounds, the second without frames
+    more than 3 robust sigmas off. Not in the paper: it lets the IMU's
+    relative rotations (supplement Eq. 1, second term) carry frames with few
+    horizontal lines without carrying the drift along.
+    """
+    F = len(R_wc)
+    if degree < 0 or F < degree + 2:
+        return np.zeros(F)
+    D = np.einsum("fij,fkj->fik", R_wc, R_wc_imu)  # world-frame correction R R_imu^T
+    # heading angle about `up`: the rotation of a horizontal reference vector projected on the horizontal plane
+    a = np.array([1.0, 0.0, 0.0]) - up[0] * up
+    a /= np.linalg.norm(a)
+    b = np.cross(up, a)
+    Da = D @ a
+    angle = np.arctan2(Da @ b, Da @ a)
+    t = np.asarray(timestamps, dtype=np.float64)
+    t = (t - t[0]) / max(t[-1] - t[0], 1e-9)  # in [0, 1]: a well-conditioned Vandermonde matrix
+    w = np.asarray(weights, dtype=np.float64)
+    keep = w > 0
+    if np.sum(keep) < degree + 2:
+        return np.zeros(F)
+    V = np.vander(t, degree + 1)
+    for _ in range(2):
+        sw = np.sqrt(w * keep)
+        coef, *_ = np.linalg.lstsq(V * sw[:, None], angle * sw, rcond=None)
+        r = angle - V @ coef
+        mad = 1.4826 * np.median(np.abs(r[keep] - np.median(r[keep])))
+        keep = keep & (np.abs(r) <= 3.0 * max(mad, 1e-5))
+        if np.sum(keep) < degree + 2:
+            break
+    return V @ coef
+
+
+def rotate_heading(R_wc: np.ndarray, angle: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
+    """Returns (F, 3, 3) R_z(angle_i) R_i: each rotation turned about the world's ``up`` by its angle."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(np.asarray(angle)[:, None] * up[None]).as_matrix() @ R_wc
+
+
 def levenberg_marquardt(
     graph: gtsam.NonlinearFactorGraph,
     values: gtsam.Values,

@@ -119,7 +119,7 @@ def colinear_groups(
 
 def match_pair(
     ea: np.ndarray, la: np.ndarray, eb: np.ndarray, lb: np.ndarray, H: np.ndarray, dist_px: float, angle_deg: float,
-    angle_px: float = 0.0,
+    angle_px: float = 0.0, gap_px: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Returns (index in a, index in b, distance px) of mutual-best segment matches between two frames.
 
@@ -133,6 +133,10 @@ def match_pair(
     segments to max(``angle_deg``, atan(``angle_px`` / shorter length)): the
     direction of a 40 px segment is only known to ~1.4 degrees at 1 px of
     endpoint noise (a deviation; long segments keep the paper's 1 degree).
+    With ``gap_px`` not None (a deviation) the two must also overlap along
+    the line, up to a gap of ``gap_px``: two 3D lines that happen to be
+    colinear in the image (a table edge continuing a skirting line) are
+    usually side by side along it, not on top of each other.
     """
     wa = _warp(H, ea.astype(np.float64))
     da, La = _lines(wa)
@@ -151,6 +155,12 @@ def match_pair(
                            np.linalg.norm(eb64[:, 2:] - eb64[:, :2], axis=1)[None, :])
         tol = np.maximum(tol, np.arctan(angle_px / np.maximum(short, 1e-9)))
     ok = (la[:, None] == lb[None, :]) & (cos > np.cos(tol)) & (gate < dist_px)
+    if gap_px is not None:  # the two must overlap along the line (up to gap_px): image-colinear lines at other depths do not
+        pa0, pa1 = wa[:, :2] @ db.T, wa[:, 2:] @ db.T  # (A, B) a's endpoints along b's direction
+        pb0, pb1 = np.sum(eb64[:, :2] * db, axis=1), np.sum(eb64[:, 2:] * db, axis=1)
+        lo = np.maximum(np.minimum(pa0, pa1), np.minimum(pb0, pb1)[None])
+        hi = np.minimum(np.maximum(pa0, pa1), np.maximum(pb0, pb1)[None])
+        ok &= lo - hi < gap_px
     cost = np.where(ok, score, np.inf)
     if cost.size == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
@@ -265,7 +275,7 @@ def track_lines(
             return
         H = rotation_homography(K, R_wc[i], R_wc[j])
         a, b, d = match_pair(ends[ia], labs[ia], ends[ib], labs[ib], H, dist_px, cfg.match_angle_deg,
-                             cfg.match_angle_px)
+                             cfg.match_angle_px, None if cfg.match_gap_frac is None else cfg.match_gap_frac * min_side)
         if bridge:  # mutual best among ALL segments, then kept only between a track end and a track start
             g = j - i
             end = (fwd_gap[ia[a]] >= g) & (bwd_gap[ib[b]] >= g)
