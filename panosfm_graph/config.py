@@ -109,6 +109,8 @@ class RelationsConfig:
     # junction checks beyond the paper (0 / False: the paper's endpoint test only)
     junction_corner_frac: float = 0.03  # both endpoints within this * min(w, h) of the lines' intersection (an L)
     junction_normals: bool = True  # the quad inside the L passes the orthogonal normal test too
+    # no Manhattan segment longer than this * min(w, h) may lie inside an orthogonal/parallel quad (0: paper)
+    quad_clear_frac: float = 0.05
 
 
 @dataclass(frozen=True)
@@ -133,6 +135,9 @@ class LinearConfig:
     # (off by default: measured with oracle normals, office 300 frames registers 99 -> 281 frames but the
     # centre error grows 2.1 -> 14.5 cm, as every observing frame's relations, wrong ones too, enter the solve)
     motion_bridge_deg: float = 0.0
+    # floor relations whose line lies less than this share as deep below the cameras as the deepest floor
+    # candidates (a first solve without them tells) are furniture tops, dropped (0: keep all, the paper)
+    floor_verify_ratio: float = 0.85
 
 
 @dataclass(frozen=True)

@@ -54,6 +54,7 @@ Formulation choices (documented deviations are marked *):
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 
@@ -223,6 +224,48 @@ def weak_axes(information: np.ndarray, min_eig: float, manhattan: np.ndarray = n
     return weak
 
 
+def verify_floor(pre: Preprocessed, tracks: Tracks, relations: Relations, camera: Camera,
+                 config: LinearConfig) -> tuple[Relations, int]:
+    """Returns (relations without the floor relations that are not on the floor, how many were dropped).
+
+    A deviation from the paper: surface normals cannot tell the floor from the tops of tables,
+    beds and sofa seats (all horizontal), and one furniture top taken for the floor makes the
+    metric scale wrong. The floor is the LOWEST horizontal plane, which a first solve without the
+    floor relations shows: each floor candidate line's depth below the mean camera height is
+    compared with the deepest horizontal lines' (the 90th percentile); lines less than
+    ``floor_verify_ratio`` of that deep (a desk top 0.7 m below a 1.45 m camera: 0.48) are no floor.
+    """
+    is_floor = relations.kind == FLOOR
+    first = solve_linear(pre, tracks, _subset(relations, ~is_floor), camera,
+                         dataclasses.replace(config, floor_verify_ratio=0.0, camera_height_m=None))
+    up = pre.manhattan.directions[_VERTICAL]
+    reg = first.registered
+    cand = np.flatnonzero(is_floor)
+    t = relations.track_a[cand].astype(int)
+    known = first.lines.valid[t] & np.any(reg)
+    if not np.any(known):
+        return relations, 0
+    cam_h = float(np.mean(first.centers[reg] @ up))
+    depth = cam_h - first.lines.taylor[t[known]] @ up  # how far below the cameras each candidate line lies
+    # the reference: the deepest horizontal lines of the model (floor candidates or not: a floor-wall
+    # line need not have been detected as floor), or the candidates when fewer than 5 lie below
+    horizontal = first.lines.valid & (tracks.axis != _VERTICAL)
+    below = cam_h - first.lines.taylor[horizontal] @ up
+    below = below[below > 0]
+    ref = float(np.percentile(below if len(below) >= 5 else depth, 90))
+    if not ref > 0:
+        return relations, 0
+    drop = cand[known][depth < config.floor_verify_ratio * ref]
+    keep = np.ones(relations.n, bool)
+    keep[drop] = False
+    log.info("linear: %d of %d floor relations are above the floor (furniture tops), dropped", len(drop), len(cand))
+    return _subset(relations, keep), int(len(drop))
+
+
+def _subset(relations: Relations, keep: np.ndarray) -> Relations:
+    return Relations(*(np.asarray(getattr(relations, f.name))[keep] for f in dataclasses.fields(Relations)))
+
+
 def turned_degrees(R_wc: np.ndarray) -> np.ndarray:
     """Returns (F,) the cumulative angle (degrees) the camera has turned since the first frame."""
     from .geometry import rotation_angle_deg
@@ -269,7 +312,13 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     scale, registration). Lines: direction = the track's Manhattan direction, position = the median
     of its observations' points (orthogonal to the direction), extent = the closest points on the
     line to its segments' end-point rays. ``R_wc`` is ``pre.R_wc`` passed through.
+    With ``floor_verify_ratio`` > 0 the floor relations are verified first (:func:`verify_floor`).
     """
+    if config.floor_verify_ratio > 0 and np.any(relations.kind == FLOOR):
+        relations, verified = verify_floor(pre, tracks, relations, camera, config)
+        sol = solve_linear(pre, tracks, relations, camera, dataclasses.replace(config, floor_verify_ratio=0.0))
+        sol.residuals["floor_relations_rejected"] = verified
+        return sol
     t_start = time.perf_counter()
     seg = pre.segments
     F = len(pre.R_wc)

@@ -144,6 +144,63 @@ def quad_normal_stats(
     return m, dev, share, strip.max(axis=1)
 
 
+def quad_crossed(pre: Preprocessed, seg_i: np.ndarray, seg_j: np.ndarray, min_len_px: float,
+                 margin_px: float = 3.0) -> np.ndarray:
+    """Returns (P,) bool: whether another Manhattan segment of the frame lies inside the quad of segments i and j.
+
+    A deviation from the paper, for precision: normals cannot tell two
+    parallel planes apart (a cabinet front and the wall behind it), but the
+    cabinet's outline -- an image line between the two segments -- can. A
+    segment counts when it is at least ``min_len_px`` long, its mid-point is
+    inside the quad (endpoints paired so that its sides do not cross) and
+    more than ``margin_px`` from both segments' lines (not a piece of them).
+    Vectorised over pairs with each frame's segments padded to one width.
+    """
+    seg = pre.segments
+    P = len(seg_i)
+    if P == 0:
+        return np.zeros(0, bool)
+    ep = seg.endpoints.astype(np.float64)
+    length = np.linalg.norm(ep[:, 2:] - ep[:, :2], axis=1)
+    cand = (np.asarray(pre.labels) >= 0) & (length >= min_len_px)
+    frame = seg.frame.astype(np.int64)
+    F = len(seg.frame_offsets) - 1
+    counts = np.bincount(frame[cand], minlength=F)
+    width = int(counts.max()) if len(counts) else 0
+    if width == 0:
+        return np.zeros(P, bool)
+    ids = np.flatnonzero(cand)  # sorted by frame, as segments are
+    slot = np.arange(len(ids)) - np.concatenate([[0], np.cumsum(counts)[:-1]])[frame[ids]]
+    table = np.full((F, width), -1, np.int64)
+    table[frame[ids], slot] = ids
+    out = np.zeros(P, bool)
+    for c0 in range(0, P, _CHUNK):
+        i, j = seg_i[c0:c0 + _CHUNK], seg_j[c0:c0 + _CHUNK]
+        k = table[frame[i]]  # (p, width) candidate segments of the pair's frame
+        valid = (k >= 0) & (k != i[:, None]) & (k != j[:, None])
+        m = 0.5 * (ep[np.maximum(k, 0), :2] + ep[np.maximum(k, 0), 2:])  # (p, width, 2)
+        p1, p2, q1, q2 = ep[i, None, :2], ep[i, None, 2:], ep[j, None, :2], ep[j, None, 2:]
+        swap = (np.linalg.norm(p1 - q1, axis=-1) + np.linalg.norm(p2 - q2, axis=-1)) > (
+            np.linalg.norm(p1 - q2, axis=-1) + np.linalg.norm(p2 - q1, axis=-1))
+        q1, q2 = np.where(swap[..., None], q2, q1), np.where(swap[..., None], q1, q2)
+        poly = [p1, p2, q2, q1]
+        sides = []
+        for a, b in zip(poly, poly[1:] + poly[:1]):
+            e = b - a
+            sides.append(e[..., 0] * (m[..., 1] - a[..., 1]) - e[..., 1] * (m[..., 0] - a[..., 0]))
+        sides = np.stack(sides, axis=-1)
+        inside = np.all(sides > 0, axis=-1) | np.all(sides < 0, axis=-1)
+
+        def off_line(a, b):  # distance of the mid-points to the line through a and b
+            d = b - a
+            n = np.linalg.norm(d, axis=-1)
+            return np.abs(d[..., 0] * (m[..., 1] - a[..., 1]) - d[..., 1] * (m[..., 0] - a[..., 0])) / np.maximum(n, 1e-9)
+
+        apart = (off_line(p1, p2) > margin_px) & (off_line(q1, q2) > margin_px)
+        out[c0:c0 + _CHUNK] = np.any(valid & inside & apart, axis=1)
+    return out
+
+
 def _quad_relations(pre, normals, seg_i, seg_j, labels, cfg, dirs):
     """Returns (kind, seg_i, seg_j, normal_axis) of the pairs passing the orthogonal/parallel quad test."""
     la, lb = labels[seg_i], labels[seg_j]
@@ -173,6 +230,9 @@ def _quad_relations(pre, normals, seg_i, seg_j, labels, cfg, dirs):
             & (share >= cfg.quad_valid_share)
             & (sep >= MIN_SEPARATION_PX)
         )
+        if cfg.quad_clear_frac > 0 and np.any(ok):
+            min_len = cfg.quad_clear_frac * min(normals.valid.shape[1:]) / normals.scale
+            ok[ok] &= ~quad_crossed(pre, i[ok], j[ok], min_len)
         kind = np.where(same[sl], PARALLEL, ORTHOGONAL)
         out.append((kind[ok], i[ok], j[ok], axis[ok]))
     if not out:

@@ -235,3 +235,29 @@ def test_motion_prior_bridges_frames_without_horizontal_lines(clean):
     # a narrow bridge does not reach the middle of the gap
     narrow = solve_linear(pre, tracks, p.relations, p.camera, LinearConfig(camera_height_m=_height(p), motion_bridge_deg=10.0))
     assert not narrow.registered[22]
+
+
+def test_furniture_tops_taken_for_floor_are_dropped(clean):
+    """Our deviation: floor relations on lines well above the lowest horizontal lines are furniture tops."""
+    p = clean
+    r = p.relations
+    room_z = (p.gt_track_lines[:, 2] + p.gt_track_lines[:, 5]) / 2 - p.scene.to_world(np.zeros(3))[2]
+    horizontal = p.tracks.axis != 2
+    is_floor_rel = np.zeros(p.tracks.n, bool)
+    is_floor_rel[r.track_a[r.kind == FLOOR]] = True
+    # false floor relations on every horizontal line between 0.3 m and 1.0 m (sofa seats, tables)
+    tops = np.flatnonzero(horizontal & (room_z > 0.3) & (room_z < 1.0) & ~is_floor_rel)
+    assert len(tops) >= 3
+    bad = Relations(np.concatenate([r.kind, np.full(len(tops), FLOOR, np.int8)]),
+                    np.concatenate([r.track_a, tops.astype(np.int32)]),
+                    np.concatenate([r.track_b, np.full(len(tops), -1, np.int32)]),
+                    np.concatenate([r.normal_axis, np.full(len(tops), 2, np.int8)]),
+                    np.concatenate([r.support, np.ones(len(tops), np.int32)]))
+    H = _height(p)
+    naive = solve_linear(p.preprocessed, p.tracks, bad, p.camera, LinearConfig(camera_height_m=H, floor_verify_ratio=0.0))
+    sol = solve_linear(p.preprocessed, p.tracks, bad, p.camera, LinearConfig(camera_height_m=H))
+    assert sol.residuals["floor_relations_rejected"] == len(tops)
+    for s_, ok in ((sol, True), (naive, False)):
+        reg = s_.registered
+        s, R, t = umeyama(s_.centers[reg], p.gt_centers[reg])
+        assert (abs(s - 1) < 0.01) == ok, s  # the metric scale is right only without the furniture tops

@@ -57,7 +57,11 @@ def _rows(rel, kind):
 
 def test_known_frame_relations():
     pre, tracks, nm = _frame(SEGS, LABELS, n_frames=2)
-    rel = detect_relations(pre, tracks, nm, CAM, RelationsConfig())
+    ours = detect_relations(pre, tracks, nm, CAM, RelationsConfig())
+    # our crossed-quad rule: segment 0 lies between the z lines 1 and 2 (a poster edge here, but it could
+    # as well be a cabinet's outline): that pair is dropped, the others stay
+    assert (1, 2, 1) not in _rows(ours, PARALLEL) and (0, 1, 1) in _rows(ours, ORTHOGONAL)
+    rel = detect_relations(pre, tracks, nm, CAM, RelationsConfig(quad_clear_frac=0.0))  # the paper's test
     ortho, par = _rows(rel, ORTHOGONAL), _rows(rel, PARALLEL)
     assert (0, 1, 1) in ortho and (0, 2, 1) in ortho  # x and z lines on the y-facing wall
     assert (1, 2, 0) not in par and (1, 2, 1) in par  # parallel z lines: plane normal y, not x
@@ -104,7 +108,7 @@ def test_junction_needs_an_l_corner_with_consistent_normals():
 
 def test_switches_turn_relation_types_off():
     pre, tracks, nm = _frame(SEGS, LABELS)
-    rel = detect_relations(pre, tracks, nm, CAM, RelationsConfig(orthogonal=False, floor=False))
+    rel = detect_relations(pre, tracks, nm, CAM, RelationsConfig(orthogonal=False, floor=False, quad_clear_frac=0.0))
     assert not np.any(rel.kind == ORTHOGONAL) and not np.any(rel.kind == FLOOR)
     assert np.any(rel.kind == PARALLEL)
 
@@ -237,3 +241,22 @@ def test_quad_valid_share():
     strict = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(quad_valid_share=0.95)), ORTHOGONAL)
     assert (0, 2, 1) in loose and (0, 2, 1) not in strict
     assert (3, 5, 0) in strict  # the right wall's quad is untouched
+
+
+def test_a_line_inside_the_quad_rejects_the_coplanarity():
+    """Our deviation: a cabinet's outline between two wall lines means they need not share a plane."""
+    from panosfm_graph.relations import quad_crossed
+
+    segs = [(20, 10, 20, 60), (70, 10, 70, 60), (45, 15, 45, 55)]  # two z lines, a third one between them
+    pre, tracks, nm = _frame(segs, [2, 2, 2])
+    cfg = RelationsConfig()
+    assert quad_crossed(pre, np.array([0]), np.array([1]), min_len_px=5.0).tolist() == [True]
+    assert quad_crossed(pre, np.array([0]), np.array([2]), min_len_px=5.0).tolist() == [False]
+    assert quad_crossed(pre, np.array([0]), np.array([1]), min_len_px=60.0).tolist() == [False]  # too short to count
+    par = _rows(detect_relations(pre, tracks, nm, CAM, cfg), PARALLEL)
+    assert (0, 1, 1) not in par and (0, 2, 1) in par and (1, 2, 1) in par
+    paper = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(quad_clear_frac=0.0)), PARALLEL)
+    assert (0, 1, 1) in paper
+    # a piece of one of the two lines themselves is not "between" them
+    pre2, tracks2, nm2 = _frame([(20, 10, 20, 60), (70, 10, 70, 60), (21, 62, 21, 80)], [2, 2, 2])
+    assert (0, 1, 1) in _rows(detect_relations(pre2, tracks2, nm2, CAM, cfg), PARALLEL)
