@@ -383,15 +383,16 @@ def test_colinear_groups_merge_only_colinear_pieces():
                      [230, 100.8, 300, 100.8],  # colinear piece 0.8 px off the line: grouped
                      [0, 104, 200, 104],  # parallel, 4 px away: separate
                      [230, 100, 300, 100],  # colinear but another label: separate
-                     [50, 50, 50, 250]], dtype=np.float32)  # other direction
-    seg = Segments(endpoints=ends, frame=np.zeros(5, np.int32), frame_offsets=np.array([0, 5]),
-                   colors=np.zeros((5, 3), np.uint8))
-    labels = np.array([0, 0, 0, 1, 2], np.int8)
+                     [50, 50, 50, 250],  # other direction
+                     [40, 99.4, 150, 99.4]], dtype=np.float32)  # 0.6 px off but overlapping: another line
+    seg = Segments(endpoints=ends, frame=np.zeros(6, np.int32), frame_offsets=np.array([0, 6]),
+                   colors=np.zeros((6, 3), np.uint8))
+    labels = np.array([0, 0, 0, 1, 2, 0], np.int8)
     rep, merged = colinear_groups(seg, labels, 1.0)
-    np.testing.assert_array_equal(rep, [0, 0, 2, 3, 4])
+    np.testing.assert_array_equal(rep, [0, 0, 2, 3, 4, 5])
     np.testing.assert_allclose(merged[0], [0, 100, 300, 100], atol=1e-6)  # spans both pieces on the long line
     np.testing.assert_allclose(merged[2:], ends[2:], atol=1e-6)
-    np.testing.assert_array_equal(colinear_groups(seg, labels, 0.0)[0], np.arange(5))
+    np.testing.assert_array_equal(colinear_groups(seg, labels, 0.0)[0], np.arange(6))
 
 
 def test_angle_tolerance_grows_for_short_segments():

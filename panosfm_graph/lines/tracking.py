@@ -64,7 +64,9 @@ def colinear_groups(
     pieces (occlusion, texture), and a track holds one segment per frame, so
     the pieces used to split the track. Within each frame, Manhattan segments
     of one label are grouped (connected components) when both endpoints of the
-    shorter are within ``dist_px`` of the longer one's line. Each group is
+    shorter are within ``dist_px`` of the longer one's line and the two lie
+    side by side along it (overlapping by at most ``dist_px``: two overlapping
+    parallel segments are two lines, like a trim's edges). Each group is
     represented by its longest piece; ``merged[rep]`` spans the extreme
     projections of all the group's endpoints on the representative's line
     (used for matching only). Non-Manhattan segments and pieces that are their
@@ -89,6 +91,14 @@ def colinear_groups(
         far = np.maximum(np.abs(L[m] @ h0.T), np.abs(L[m] @ h1.T))  # [i, j]: j's farther endpoint to i's line
         longer = length[m][:, None] >= length[m][None, :]
         ok = longer & (far < dist_px) & (labels[m][:, None] == labels[m][None, :])
+        # pieces lie side by side along the line; two that overlap are two lines (the edges of a trim)
+        dm = d[m]
+        p0 = np.sum(e[:, :2][None] * dm[:, None], axis=-1)  # [i, j]: j's endpoints along i's direction
+        p1 = np.sum(e[:, 2:][None] * dm[:, None], axis=-1)
+        own0, own1 = np.diagonal(p0), np.diagonal(p1)
+        overlap = (np.minimum(np.maximum(p0, p1), np.maximum(own0, own1)[:, None])
+                   - np.maximum(np.minimum(p0, p1), np.minimum(own0, own1)[:, None]))
+        ok &= overlap <= dist_px
         np.fill_diagonal(ok, False)
         i, j = np.nonzero(ok)
         src.append(m[i])
