@@ -124,7 +124,11 @@ class LinearConfig:
     camera_height_m: float | None = None  # metric scale: floor this far below the mean camera height
     zero_translation: bool = False  # the paper's baseline: all camera centres fixed at the origin
     min_view_eig: float = 0.02  # register a frame only if its lines' interpretation-plane normals span 3D this well
-    robust_iterations: int = 0  # IRLS rounds (Cauchy) on coplanarity rows against wrong relations; 0 = paper (plain LS)
+    # IRLS rounds (Cauchy) on coplanarity rows against wrong relations; 0 = paper (plain LS). Off by default:
+    # exact on image-free problems (10 % false relations: 251 -> 8 mm) but on the pipeline's output the benchmark
+    # got worse (living 10.3 -> 13.7 % centre error, bedroom 18 -> 0 % registered): weakly observed lines
+    robust_iterations: int = 0
+    robust_observations: bool = False  # IRLS also downweights observations far off their track's line (impure tracks)
     robust_k: float = 2.385  # Cauchy constant, in robust sigmas (1.4826 * median |residual|)
     floor_tolerance: float = 0.0  # IRLS: floor lines this share of the camera-to-floor distance ABOVE the floor are downweighted (0: never)
     motion_weight: float = 0.3  # body-motion prior on consecutive centres (rows in m, like colinearity; sigma_c / sigma_accel); 0 = paper

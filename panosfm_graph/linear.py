@@ -454,9 +454,10 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
         nf, npn = int(free_o.sum()), int(pinned.sum())
         r0 = n_const_rows
         rr = r0 + np.arange(nf)
-        c1, c2 = e2[free_o] / en[free_o], e1[free_o] / en[free_o]
+        wo = np.sqrt(robust_w[r0:])  # observations' IRLS weights (ones unless robust_observations)
+        c1, c2 = wo[free_o] * e2[free_o] / en[free_o], wo[free_o] * e1[free_o] / en[free_o]
         rc = np.arange(r0)
-        wr = rel_w * np.sqrt(robust_w)
+        wr = rel_w * np.sqrt(robust_w[:r0])
         rows = [rc, rc] + [rr] * 4
         cols = [rel_c0, rel_c1] + [c_t1[free_o], c_u1[free_o], c_t2[free_o], c_u2[free_o]]
         vals = [wr, -wr] + [w_c * c1, -w_c * c1, -w_c * c2, w_c * c2]
@@ -464,8 +465,9 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
         rp = r0 + nf + np.arange(npn)
         rows += [rp, rp, rp + npn, rp + npn]
         cols += [c_t1[pinned], c_u1[pinned], c_t2[pinned], c_u2[pinned]]
-        vals += [np.full(npn, w_c), np.full(npn, -w_c), np.full(npn, w_c), np.full(npn, -w_c)]
-        rhs += [-w_c * lam_min * e1[pinned], -w_c * lam_min * e2[pinned]]
+        wp = w_c * wo[pinned]
+        vals += [wp, -wp, wp, -wp]
+        rhs += [-wp * lam_min * e1[pinned], -wp * lam_min * e2[pinned]]
         rm = r0 + nf + 2 * npn + np.arange(n_mot_rows)
         rows += [np.repeat(rm, mot_c.shape[1])]
         cols += [mot_c.ravel()]
@@ -497,22 +499,30 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     pinned = np.zeros(len(ob), bool)
     x = np.where(fixed, fixed_val, 0.0)
     lam = np.zeros(len(ob))
-    robust_w = np.ones(n_const_rows)
+    robust_w = np.ones(n_const_rows + len(ob))
     iterations = 0
     n_down = 0
     if len(ob) and len(free_idx):
-        for irls in range(max(config.robust_iterations, 0) + 1):
+        schedule = ["cauchy"] * max(config.robust_iterations, 0)  # Cauchy IRLS rounds after the plain solve
+        for irls in range(len(schedule) + 1):
             x, lam, pinned, it = _active_set(assemble, full_x, depths, pinned, robust_w, not_ref, lam_min, h0)
             iterations += it
-            if irls == config.robust_iterations or n_const_rows == 0:
+            if irls == len(schedule) or (n_const_rows == 0 and not config.robust_observations):
                 break
-            # Cauchy weights on the relation residuals, scale from their median absolute value
+            noise = 0.5 / camera.K[0, 0] * float(np.median(np.abs(lam)))  # half a pixel at the median depth
+
+            def weights(res):  # Cauchy, scale: the robust spread, at least half a pixel of noise
+                scale = max(1.4826 * float(np.median(np.abs(res))), noise,
+                            1e-6 * max(1.0, float(np.median(np.abs(lam)))))
+                return 1.0 / (1.0 + (res / (config.robust_k * scale)) ** 2)
+
             r = x[rel_c0] - x[rel_c1]
-            new_w = np.ones(n_const_rows)
+            new_w = np.ones(n_const_rows + len(ob))
+            if config.robust_observations:  # an observation off its track's line: a member of another line
+                a1, a2 = x[c_t1] - x[c_u1], x[c_t2] - x[c_u2]
+                new_w[n_const_rows:] = weights((a1 * e2 - a2 * e1) / en)  # ray-to-line distance
             if n_pair_rows:
-                rp_ = r[:n_pair_rows]
-                sigma = max(1.4826 * float(np.median(np.abs(rp_))), 1e-6 * max(1.0, float(np.median(np.abs(lam)))))
-                new_w[:n_pair_rows] = 1.0 / (1.0 + (rp_ / (config.robust_k * sigma)) ** 2)
+                new_w[:n_pair_rows] = weights(r[:n_pair_rows])
             if config.floor_tolerance > 0 and n_const_rows > n_pair_rows:
                 # one-sided: a 'floor' line above the floor is a furniture top (upward normals too);
                 # no line lies below the floor. Scale: a share of the camera-to-floor distance.
@@ -521,7 +531,7 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
             if np.allclose(new_w, robust_w, atol=1e-3):
                 break
             robust_w = new_w
-        n_down = int(np.sum(robust_w < 0.5))
+        n_down = int(np.sum(robust_w[:n_const_rows] < 0.5))
     elif len(ob):
         lam, _ = depths(x, pinned)
 

@@ -261,3 +261,18 @@ def test_furniture_tops_taken_for_floor_are_dropped(clean):
         reg = s_.registered
         s, R, t = umeyama(s_.centers[reg], p.gt_centers[reg])
         assert (abs(s - 1) < 0.01) == ok, s  # the metric scale is right only without the furniture tops
+
+
+def test_robust_solve_resists_false_relations():
+    """Our option (off by default, see LinearConfig): Cauchy IRLS on the relation rows and the observations."""
+    errs = {}
+    for frac in (0.0, 0.1):
+        p = make_problem("living", 60, (480, 270), seed=0, pixel_noise_px=0.5, false_relation_ratio=frac)
+        for name, cfg in (("paper", {}), ("ours", dict(robust_iterations=5, robust_observations=True))):
+            sol = solve_linear(p.preprocessed, p.tracks, p.relations, p.camera, LinearConfig(camera_height_m=_height(p), **cfg))
+            reg = sol.registered
+            s, R, t = umeyama(sol.centers[reg], p.gt_centers[reg])
+            errs[frac, name] = np.median(np.linalg.norm((s * (R @ sol.centers[reg].T)).T + t - p.gt_centers[reg], axis=1))
+    # measured: clean 2.3 / 2.1 mm; with 10 % false coplanarities 251 mm plain, 8 mm robust
+    assert errs[0.0, "ours"] < 0.005 and errs[0.0, "paper"] < 0.005, errs
+    assert errs[0.1, "paper"] > 0.1 and errs[0.1, "ours"] < 0.02, errs
