@@ -165,6 +165,7 @@ class GraphConfig:
     max_iterations: int = 30
     reject_sigma: float = 5.0  # drop relations whose residual exceeds this many sigmas, then resolve
     incremental_batch: int | None = None  # frames per batch for incremental solves
+    incremental_final_solve: bool = True  # after the last batch, solve everything once from the linear solution
     rotation_prior_sigma_deg: float = 0.03  # phases >= 2: absolute prior at the preprocessed (vanishing-point) R_wc; 0 = off
     focal_max_sigma_frac: float = 0.002  # phase 3 refines the focal only if its marginal std is below this share of it
     max_line_sigma_m: float = 0.1  # lines whose position std (from their factors) exceeds this are marked invalid

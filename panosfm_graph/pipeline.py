@@ -321,6 +321,8 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
     }
     if result.batches:
         summary["incremental_batches"] = [int(b.registered.sum()) for b in result.batches]
+        summary["incremental_batch_seconds"] = [round(float(b.residuals.get("batch_seconds", 0.0)), 3)
+                                                for b in result.batches]
     summary["seconds"]["total"] = round(time.perf_counter() - t_start, 3)
     return summary
 
