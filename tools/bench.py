@@ -1,12 +1,16 @@
 """Whole-pipeline benchmark: panosfm (and the COLMAP peer, when pycolmap is installed) on synthetic scenes.
 
     python tools/bench.py --scenes living,bedroom,office --frames 300 --size 960x540 --out bench/
+    python tools/bench.py --peer none --seeds 3 --set linear.robust_iterations=5   # a setting, 3 captures per scene
 
-For each scene: synthesise a capture (cached in ``OUT/captures``), run
+For each scene (and each of ``--seeds`` captures of it: the single-capture results of this
+pipeline swing a lot with small changes, so compare settings over several): synthesise a
+capture (cached in ``OUT/captures``), run
 panosfm with the camera height given, run the peer (``--peer`` incremental
 and/or global), score everything with ``evaluate_reconstruction``, and write
-``bench.json`` and ``bench.md`` (metrics, seconds per stage, peak memory).
-Each panosfm run is a fresh subprocess so peak memory is per run.
+``bench.json`` and ``bench.md`` (metrics, seconds per stage, peak memory; with several
+seeds also the median over them per scene and method). ``--set`` passes pipeline settings to
+``panosfm run``. Each panosfm run is a fresh subprocess so peak memory is per run.
 """
 from __future__ import annotations
 
@@ -31,7 +35,7 @@ def _run(cmd: list[str]) -> tuple[int, float, str]:
 
 
 def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peers: list[str],
-          seed: int = 0, reuse_peer: bool = False) -> dict:
+          seed: int = 0, reuse_peer: bool = False, seeds: int = 1, settings: list[str] = ()) -> dict:
     """Returns the benchmark record (also written to ``out/bench.json`` and ``out/bench.md``)."""
     from panosfm_graph.capture import load_capture
     from panosfm_graph.evaluate import evaluate_reconstruction
@@ -40,22 +44,27 @@ def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peer
     out.mkdir(parents=True, exist_ok=True)
     record = {"date": datetime.date.today().isoformat(), "machine": f"{platform.machine()}, {os.cpu_count()} cores",
               "frames": frames, "size": list(size), "scenes": {}}
-    for k, scene in enumerate(scenes):
-        cap = out / "captures" / f"{scene}-{frames}-{size[0]}x{size[1]}-s{seed + k}"
+    runs = [(k, scene, j) for j in range(max(seeds, 1)) for k, scene in enumerate(scenes)]
+    set_args = [a for kv in settings for a in ("--set", kv)]
+    record["settings"] = list(settings)
+    for k, scene_name, j in runs:
+        scene = scene_name
+        name = scene if j == 0 else f"{scene}#{j}"  # capture j of the scene: seed + k + 10 j
+        cap = out / "captures" / f"{scene}-{frames}-{size[0]}x{size[1]}-s{seed + k + 10 * j}"
         if not (cap / "imu.csv").exists():
             t0 = time.perf_counter()
-            synthesize(cap, scene=scene, n_frames=frames, size=size, seed=seed + k)
+            synthesize(cap, scene=scene, n_frames=frames, size=size, seed=seed + k + 10 * j)
             print(f"[{scene}] synthesised in {time.perf_counter() - t0:.1f} s", flush=True)
         gt = load_capture(cap).ground_truth
         height = float(gt.centers[:, 2].mean() - gt.scene.get("room", {}).get("min", [0, 0, 0])[2])
         entry = {}
-        rec = out / "runs" / scene / "panosfm"
+        rec = out / "runs" / name / "panosfm"
         code, secs, err = _run([sys.executable, "-m", "panosfm_graph", "run", str(cap), str(rec),
-                                "--camera-height", f"{height:.4f}", "--no-rerun"])
+                                "--camera-height", f"{height:.4f}", "--no-rerun", *set_args])
         entry["panosfm"] = _score(rec, cap, code, secs, err, evaluate_reconstruction)
-        print(f"[{scene}] panosfm: {_line(entry['panosfm'])}", flush=True)
+        print(f"[{name}] panosfm: {_line(entry['panosfm'])}", flush=True)
         for mapper in peers:
-            pdir = out / "runs" / scene / f"colmap-{mapper}"
+            pdir = out / "runs" / name / f"colmap-{mapper}"
             if reuse_peer and (pdir / "summary.json").exists():  # the peer is deterministic for a capture
                 secs = json.loads((pdir / "summary.json").read_text())["seconds"]["total"]
                 code, err = 0, ""
@@ -63,8 +72,10 @@ def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peer
                 code, secs, err = _run([sys.executable, str(HERE / "peer_colmap.py"), str(cap), str(pdir),
                                         "--mapper", mapper, "--max-mapping-minutes", str(PEER_MAX_MINUTES)])
             entry[f"colmap-{mapper}"] = _score(pdir, cap, code, secs, err, evaluate_reconstruction)
-            print(f"[{scene}] colmap-{mapper}: {_line(entry[f'colmap-{mapper}'])}", flush=True)
-        record["scenes"][scene] = entry
+            print(f"[{name}] colmap-{mapper}: {_line(entry[f'colmap-{mapper}'])}", flush=True)
+        record["scenes"][name] = entry
+    if seeds > 1:
+        record["median_over_seeds"] = _medians(record["scenes"], scenes)
     from panosfm_graph.export import to_jsonable
 
     (out / "bench.json").write_text(json.dumps(to_jsonable(record), indent=2))
@@ -72,6 +83,31 @@ def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peer
     (out / "bench.md").write_text(md + "\n")
     print(md)
     return record
+
+
+# the metrics tabulated, as paths into ``evaluate_reconstruction``'s dictionary
+METRICS = {"registered": ("registered_ratio",), "centre": ("center_error_rel", "median"),
+           "rotation": ("rotation_error_rotalign_deg", "median"), "reprojection": ("reprojection_px", "mean"),
+           "lines": ("lines", "distance_m", "median"), "recovered": ("lines", "recovered_share")}
+
+
+def _medians(runs: dict, scenes: list[str]) -> dict:
+    """Returns {scene: {method: {metric: median over the scene's captures}}} (failed or missing: left out)."""
+    import numpy as np
+
+    out: dict = {}
+    for scene in scenes:
+        entries = [e for name, e in runs.items() if name.split("#")[0] == scene]
+        for method in sorted({m for e in entries for m in e}):
+            vals = {}
+            for key, path in METRICS.items():
+                v = [_m(e[method], *path) for e in entries if method in e and "error" not in e[method]]
+                v = [x for x in v if x is not None]
+                vals[key] = float(np.median(v)) if v else None
+            vals["captures"] = len(entries)
+            vals["failed"] = sum(1 for e in entries if method in e and "error" in e[method])
+            out.setdefault(scene, {})[method] = vals
+    return out
 
 
 def _score(rec: Path, cap: Path, code: int, secs: float, err: str, evaluate) -> dict:
@@ -127,6 +163,19 @@ def format_bench(record: dict) -> str:
                 f"| {f(_m(r, 'lines', 'distance_m', 'median'), '.3f')} "
                 f"| {f(_m(r, 'lines', 'recovered_share'), '.2f')} "
                 f"| {r['wall_s']:.1f} | {f(r.get('peak_memory_mb'), '.0f')} |")
+    med = record.get("median_over_seeds")
+    if med:
+        rows += ["", "Median over the captures of each scene:", "",
+                 "| scene | method | captures | registered | centre err. median (% diam.) | rot. err. (deg) "
+                 "| corner reproj. mean (px) | line-surface median (m) |", "|" + "---|" * 8]
+        for scene, methods in med.items():
+            for method, v in methods.items():
+                reg = v["registered"]
+                cen = v["centre"]
+                rows.append(f"| {scene} | {method} | {v['captures']} ({v['failed']} failed) "
+                            f"| {f(None if reg is None else 100 * reg, '.1f')} % "
+                            f"| {f(None if cen is None else 100 * cen, '.2f')} | {f(v['rotation'], '.3f')} "
+                            f"| {f(v['reprojection'], '.2f')} | {f(v['lines'], '.3f')} |")
     return "\n".join(rows)
 
 
@@ -141,6 +190,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="reuse a peer reconstruction already in OUT/runs (same capture, same settings)")
     p.add_argument("--peer", default="auto", help="'auto' (incremental if pycolmap is installed), 'none', "
                    "or a comma list of incremental,global")
+    p.add_argument("--seeds", type=int, default=1, help="captures per scene (seeds SEED + k + 10 j)")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                   help="a pipeline setting for panosfm run (repeatable)")
     args = p.parse_args(argv)
     w, h = (int(v) for v in args.size.lower().split("x"))
     if args.peer == "auto":
@@ -154,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         peers = [s.strip() for s in args.peer.split(",") if s.strip()]
     bench([s.strip() for s in args.scenes.split(",")], args.frames, (w, h), Path(args.out), peers, args.seed,
-          args.reuse_peer)
+          args.reuse_peer, args.seeds, args.set)
     return 0
 
 

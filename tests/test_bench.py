@@ -1,0 +1,29 @@
+"""tools/bench.py: medians over the captures of a scene and their table (no pipeline run)."""
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+from bench import _medians, format_bench  # noqa: E402
+
+
+def _run(reg, centre, reproj):
+    return {"wall_s": 1.0, "metrics": {"registered_ratio": reg, "center_error_rel": {"median": centre},
+                                       "rotation_error_rotalign_deg": {"median": 0.1},
+                                       "reprojection_px": {"mean": reproj},
+                                       "lines": {"distance_m": {"median": 0.1}, "recovered_share": 0.5}}}
+
+
+def test_medians_over_seeds_skip_failures():
+    runs = {"living": {"panosfm": _run(0.9, 0.10, 2.0)},
+            "living#1": {"panosfm": _run(0.5, 0.02, 1.0)},
+            "living#2": {"panosfm": {"wall_s": 1.0, "error": "boom"}},
+            "office": {"panosfm": _run(0.3, 0.01, 1.1)}}
+    med = _medians(runs, ["living", "office"])
+    liv = med["living"]["panosfm"]
+    assert liv["captures"] == 3 and liv["failed"] == 1
+    assert liv["registered"] == 0.7 and abs(liv["centre"] - 0.06) < 1e-12 and liv["reprojection"] == 1.5
+    assert med["office"]["panosfm"]["captures"] == 1 and med["office"]["panosfm"]["centre"] == 0.01
+    md = format_bench({"date": "d", "machine": "m", "frames": 3, "size": [9, 6], "scenes": runs,
+                       "median_over_seeds": med})
+    assert "| living | panosfm | 3 (1 failed) | 70.0 % | 6.00 |" in md
+    assert "| living#2 | panosfm | failed: boom |" in md
