@@ -234,6 +234,10 @@ def verify_floor(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     floor relations shows: each floor candidate line's depth below the mean camera height is
     compared with the deepest horizontal lines' (the 90th percentile); lines less than
     ``floor_verify_ratio`` of that deep (a desk top 0.7 m below a 1.45 m camera: 0.48) are no floor.
+    With fewer than 5 horizontal lines below the cameras the candidates are compared among
+    themselves, and with fewer than 3 candidates nothing can be verified: all are dropped (the
+    scale is then reported arbitrary rather than metric on a guess), as are candidates whose line
+    the first solve does not determine.
     """
     is_floor = relations.kind == FLOOR
     first = solve_linear(pre, tracks, _subset(relations, ~is_floor), camera,
@@ -242,9 +246,11 @@ def verify_floor(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     reg = first.registered
     cand = np.flatnonzero(is_floor)
     t = relations.track_a[cand].astype(int)
-    known = first.lines.valid[t] & np.any(reg)
+    known = first.lines.valid[t] & np.any(reg)  # the others cannot be checked: they are dropped too
     if not np.any(known):
-        return relations, 0
+        keep = ~is_floor
+        log.info("linear: none of the %d floor relations can be verified, dropped", len(cand))
+        return _subset(relations, keep), int(len(cand))
     cam_h = float(np.mean(first.centers[reg] @ up))
     depth = cam_h - first.lines.taylor[t[known]] @ up  # how far below the cameras each candidate line lies
     # the reference: the deepest horizontal lines of the model (floor candidates or not: a floor-wall
@@ -252,10 +258,13 @@ def verify_floor(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     horizontal = first.lines.valid & (tracks.axis != _VERTICAL)
     below = cam_h - first.lines.taylor[horizontal] @ up
     below = below[below > 0]
-    ref = float(np.percentile(below if len(below) >= 5 else depth, 90))
-    if not ref > 0:
-        return relations, 0
-    drop = cand[known][depth < config.floor_verify_ratio * ref]
+    if len(below) >= 5:
+        ref = float(np.percentile(below, 90))
+    elif len(depth) >= 3:
+        ref = float(np.percentile(depth, 90))
+    else:  # nothing to compare with: one or two floor lines may as well be a bed top; the scale stays arbitrary
+        ref = np.inf
+    drop = np.concatenate([cand[~known], cand[known][~(depth >= config.floor_verify_ratio * ref)]])
     keep = np.ones(relations.n, bool)
     keep[drop] = False
     log.info("linear: %d of %d floor relations are above the floor (furniture tops), dropped", len(drop), len(cand))
