@@ -104,23 +104,11 @@ def spawn(args: list[str], script: str | None = None, extra: list[str] = ()) -> 
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
 
 
-def reap(proc: subprocess.Popen, timeout: float = 300) -> tuple[int, str]:
-    """Returns (exit status, stderr) of ``proc``; its process group is killed afterwards (no strays)."""
-    try:
-        _, err = proc.communicate(timeout=timeout)
-    finally:
-        try:
-            os.killpg(proc.pid, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
-            pass
-    return proc.returncode, err
-
-
 # A run that SIGKILLs itself at one chosen moment: "bundle_adjust" (as the solve starts), "export"
 # (after sparse/ is written into the temporary directory), "swap" (the old result already renamed
 # to the backup, the new one not yet in place). Shared with tools/bench_reliability.py.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
-from bench_reliability import KILLER  # noqa: E402
+from bench_reliability import KILLER, reap  # noqa: E402
 
 
 # --------------------------------------------------------------------------- fixtures
@@ -445,10 +433,10 @@ def test_sigkill_during_detection_then_resume(spin, baseline, tmp_path):
             break
     time.sleep(0.3)
     os.killpg(proc.pid, signal.SIGKILL)
-    code, _ = reap(proc)
+    code, _ = reap(proc, timeout=300)
     assert code == -signal.SIGKILL and time.monotonic() - t0 < 120
     assert not (out / "summary.json").exists() and not (out / "sparse").exists()  # no result, not half of one
-    code, err = reap(spawn(["run", str(spin), str(out), "--resume", *RUN_FLAGS]))
+    code, err = reap(spawn(["run", str(spin), str(out), "--resume", *RUN_FLAGS]), timeout=300)
     assert code == 0, err
     s = check_result(out, spin)
     assert s["resumed_stages"] == list(STAGES[: len(s["resumed_stages"])])  # a prefix: complete stages only
@@ -461,7 +449,7 @@ def test_sigkill_keeps_the_previous_result_and_resume_finishes(spin, baseline, p
     shutil.rmtree(previous / "cache")  # so that this run computes every stage again
     before = snapshot(previous)
     code, err = reap(spawn(["run", str(spin), str(previous), "--resume", *RUN_FLAGS], script=KILLER,
-                           extra=[moment]))
+                           extra=[moment]), timeout=300)
     assert code == -signal.SIGKILL, err
     if moment == "swap":  # killed between the renames: the previous result sits in the backup
         backup = previous.parent / ".out.backup"
@@ -469,7 +457,7 @@ def test_sigkill_keeps_the_previous_result_and_resume_finishes(spin, baseline, p
         assert any(".tmp-" in n for n in leftovers(previous))
     else:
         assert snapshot(previous) == before
-    code, err = reap(spawn(["run", str(spin), str(previous), "--resume", *RUN_FLAGS]))
+    code, err = reap(spawn(["run", str(spin), str(previous), "--resume", *RUN_FLAGS]), timeout=300)
     assert code == 0, err
     s = check_result(previous, spin)
     assert leftovers(previous) == []

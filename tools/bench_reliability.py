@@ -66,14 +66,13 @@ def snapshot(d: Path, skip: tuple[str, ...] = ("cache",)) -> dict[str, str]:
             if p.is_file() and p.relative_to(d).parts[0] not in skip}
 
 
-def run_cli(args: list[str], script: str | None = None, extra: list[str] = (), timeout: float = 600,
-            kill_on: str | None = None, kill_delay_s: float = 0.3) -> tuple[int, str]:
-    """Returns (exit status, stderr) of ``panosfm ARGS`` in a new session; its process group is killed after.
+def reap(proc: subprocess.Popen, timeout: float = 600, kill_on: str | None = None,
+         kill_delay_s: float = 0.3) -> tuple[int, str]:
+    """Returns (exit status, stderr) of ``proc`` (started in its own session); its process group is killed after.
 
     ``kill_on``: SIGKILL the run's process group ``kill_delay_s`` after a stderr line containing it.
+    Shared with tests/test_reliability.py.
     """
-    cmd = [sys.executable, "-c", script, *extra, *args] if script else [sys.executable, "-m", "panosfm_graph", *args]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
     lines = []
     try:
         if kill_on:
@@ -90,6 +89,14 @@ def run_cli(args: list[str], script: str | None = None, extra: list[str] = (), t
         except (ProcessLookupError, PermissionError):
             pass
     return proc.returncode, "".join(lines) + (err or "")
+
+
+def run_cli(args: list[str], script: str | None = None, extra: list[str] = (), timeout: float = 600,
+            kill_on: str | None = None, kill_delay_s: float = 0.3) -> tuple[int, str]:
+    """Returns (exit status, stderr) of ``panosfm ARGS`` in a new session (:func:`reap`)."""
+    cmd = [sys.executable, "-c", script, *extra, *args] if script else [sys.executable, "-m", "panosfm_graph", *args]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    return reap(proc, timeout, kill_on, kill_delay_s)
 
 
 def leftovers(out: Path) -> list[str]:
