@@ -76,7 +76,6 @@ class TrackingConfig:
     bridge_angle_deg: float = 0.0  # >0: also link track ENDS across frames whose axes are within this (0: paper)
     match_angle_px: float = 1.0  # >0: angle tolerance max(match_angle_deg, atan(this / shorter length)) (0: paper)
     colinear_px: float = 1.0  # >0: colinear pieces of one frame (within this) are matched as one (0: paper)
-    colinear_gap_frac: float = float("inf") # ... if the gap between them along the line is below this * min(w, h)
     match_gap_frac: float | None = 0.0  # matched segments overlap along the line up to a gap of this * min(w, h) (None: paper)
 
 

@@ -14,6 +14,8 @@ track, frame or relation. Conventions (see ``capture-format.md``):
 """
 from __future__ import annotations
 
+import dataclasses
+
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator
@@ -254,6 +256,10 @@ class Relations:
 
     def counts(self) -> dict[str, int]:
         return {name: int(np.sum(self.kind == k)) for k, name in enumerate(RELATION_NAMES)}
+
+    def subset(self, index: np.ndarray) -> "Relations":
+        """Returns the relations selected by ``index`` (a boolean mask or integer indices)."""
+        return Relations(*(np.asarray(getattr(self, f.name))[index] for f in dataclasses.fields(Relations)))
 
 
 @dataclass(frozen=True)

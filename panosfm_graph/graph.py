@@ -426,7 +426,7 @@ def bundle_adjust(pre: Preprocessed, tracks: Tracks, relations: Relations, initi
             for t in prob.lines:
                 taylor_now[t] = values.atPoint3(line_key(t))
             h = values.atVector(FLOOR_KEY)[0] if values.exists(FLOOR_KEY) else 0.0
-            sub = Relations(*(np.asarray(getattr(relations, f.name))[prob.rel_idx] for f in dataclasses.fields(Relations)))
+            sub = relations.subset(prob.rel_idx)
             white = np.abs(relation_residuals(sub, pre.manhattan.directions, taylor_now, h)) / relation_sigmas(sub, config)
             drop = rel_mask & (white > config.reject_sigma)
             if not drop.any():
@@ -543,7 +543,7 @@ def determinacy(pre: Preprocessed, relations: Relations, prob: _Problem, rel_use
         np.add.at(H_c, f[ok], outer)
     r = prob.rel_idx[rel_used]
     if len(r):
-        sub = Relations(*(np.asarray(getattr(relations, fl.name))[r] for fl in dataclasses.fields(Relations)))
+        sub = relations.subset(r)
         sig = relation_sigmas(sub, config)
         white = np.abs(relation_residuals(sub, pre.manhattan.directions, taylor, floor_h)) / sig
         wgt = factors.robust_weight(white, config.robust, config.robust_k) / sig**2

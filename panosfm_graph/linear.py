@@ -240,7 +240,7 @@ def verify_floor(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     the first solve does not determine.
     """
     is_floor = relations.kind == FLOOR
-    first = solve_linear(pre, tracks, _subset(relations, ~is_floor), camera,
+    first = solve_linear(pre, tracks, relations.subset(~is_floor), camera,
                          dataclasses.replace(config, floor_verify_ratio=0.0, camera_height_m=None))
     up = pre.manhattan.directions[_VERTICAL]
     reg = first.registered
@@ -250,7 +250,7 @@ def verify_floor(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     if not np.any(known):
         keep = ~is_floor
         log.info("linear: none of the %d floor relations can be verified, dropped", len(cand))
-        return _subset(relations, keep), int(len(cand))
+        return relations.subset(keep), int(len(cand))
     cam_h = float(np.mean(first.centers[reg] @ up))
     depth = cam_h - first.lines.taylor[t[known]] @ up  # how far below the cameras each candidate line lies
     # the reference: the deepest horizontal lines of the model (floor candidates or not: a floor-wall
@@ -268,11 +268,7 @@ def verify_floor(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     keep = np.ones(relations.n, bool)
     keep[drop] = False
     log.info("linear: %d of %d floor relations are above the floor (furniture tops), dropped", len(drop), len(cand))
-    return _subset(relations, keep), int(len(drop))
-
-
-def _subset(relations: Relations, keep: np.ndarray) -> Relations:
-    return Relations(*(np.asarray(getattr(relations, f.name))[keep] for f in dataclasses.fields(Relations)))
+    return relations.subset(keep), int(len(drop))
 
 
 def turned_degrees(R_wc: np.ndarray) -> np.ndarray:
@@ -427,9 +423,9 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     ref_obs = -1
     if not use_floor and len(ob):
         # fix one depth: an observation in the first registered frame of its most observed track
-        ob_reg = ob[registered[o_frame[ob]]]
-        ob_reg = ob_reg if len(ob_reg) else ob
-        cand = ob_reg[o_frame[ob_reg] == o_frame[ob_reg].min()]
+        ob_ref = ob[registered[o_frame[ob]]]
+        ob_ref = ob_ref if len(ob_ref) else ob
+        cand = ob_ref[o_frame[ob_ref] == o_frame[ob_ref].min()]
         ref_obs = int(cand[np.argmax(n_obs[o_track[cand]])])
         t0 = o_track[ref_obs]
         tau0 = np.zeros(3)  # the reference frame's centre is the origin
@@ -512,11 +508,10 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     iterations = 0
     n_down = 0
     if len(ob) and len(free_idx):
-        schedule = ["cauchy"] * max(config.robust_iterations, 0)  # Cauchy IRLS rounds after the plain solve
-        for irls in range(len(schedule) + 1):
+        for irls in range(max(config.robust_iterations, 0) + 1):
             x, lam, pinned, it = _active_set(assemble, full_x, depths, pinned, robust_w, not_ref, lam_min, h0)
             iterations += it
-            if irls == len(schedule) or (n_const_rows == 0 and not config.robust_observations):
+            if irls == config.robust_iterations or (n_const_rows == 0 and not config.robust_observations):
                 break
             noise = 0.5 / camera.K[0, 0] * float(np.median(np.abs(lam)))  # half a pixel at the median depth
 

@@ -85,6 +85,13 @@ def _frame_pairs(points: np.ndarray, frame: np.ndarray, owner: np.ndarray, radiu
     return np.unique(pairs, axis=0)
 
 
+def _uncrossed(p1: np.ndarray, p2: np.ndarray, q1: np.ndarray, q2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Returns segment b's end points (q1, q2) ordered so that the quad p1 p2 q2 q1 has no crossing sides."""
+    swap = (np.linalg.norm(p1 - q1, axis=-1) + np.linalg.norm(p2 - q2, axis=-1)) > (
+        np.linalg.norm(p1 - q2, axis=-1) + np.linalg.norm(p2 - q1, axis=-1))
+    return np.where(swap[..., None], q2, q1), np.where(swap[..., None], q1, q2)
+
+
 def quad_normal_stats(
     normals: NormalMaps, frame: np.ndarray, seg_a: np.ndarray, seg_b: np.ndarray, grid: int = QUAD_GRID
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -106,10 +113,7 @@ def quad_normal_stats(
     P = len(frame)
     p1, p2 = seg_a[:, None, :2], seg_a[:, None, 2:]
     q1, q2 = seg_b[:, None, :2], seg_b[:, None, 2:]
-    swap = (np.linalg.norm(p1 - q1, axis=-1) + np.linalg.norm(p2 - q2, axis=-1)) > (
-        np.linalg.norm(p1 - q2, axis=-1) + np.linalg.norm(p2 - q1, axis=-1)
-    )
-    q1, q2 = np.where(swap[..., None], q2, q1), np.where(swap[..., None], q1, q2)
+    q1, q2 = _uncrossed(p1, p2, q1, q2)
     sep = np.linalg.norm(0.5 * (p1 + p2) - 0.5 * (q1 + q2), axis=-1)  # (P, 1) pixels
     # strip centres across the quad (fractions of the way from a to b) and their widths
     G = grid + 2
@@ -188,9 +192,7 @@ def quad_crossed(pre: Preprocessed, seg_i: np.ndarray, seg_j: np.ndarray, min_le
         valid = (k >= 0) & (k != i[:, None]) & (k != j[:, None])
         m = 0.5 * (ep[np.maximum(k, 0), :2] + ep[np.maximum(k, 0), 2:])  # (p, width, 2)
         p1, p2, q1, q2 = ep[i, None, :2], ep[i, None, 2:], ep[j, None, :2], ep[j, None, 2:]
-        swap = (np.linalg.norm(p1 - q1, axis=-1) + np.linalg.norm(p2 - q2, axis=-1)) > (
-            np.linalg.norm(p1 - q2, axis=-1) + np.linalg.norm(p2 - q1, axis=-1))
-        q1, q2 = np.where(swap[..., None], q2, q1), np.where(swap[..., None], q1, q2)
+        q1, q2 = _uncrossed(p1, p2, q1, q2)
         poly = [p1, p2, q2, q1]
         sides = []
         for a, b in zip(poly, poly[1:] + poly[:1]):

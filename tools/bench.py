@@ -47,8 +47,7 @@ def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peer
     runs = [(k, scene, j) for j in range(max(seeds, 1)) for k, scene in enumerate(scenes)]
     set_args = [a for kv in settings for a in ("--set", kv)]
     record["settings"] = list(settings)
-    for k, scene_name, j in runs:
-        scene = scene_name
+    for k, scene, j in runs:
         name = scene if j == 0 else f"{scene}#{j}"  # capture j of the scene: seed + k + 10 j
         cap = out / "captures" / f"{scene}-{frames}-{size[0]}x{size[1]}-s{seed + k + 10 * j}"
         if not (cap / "imu.csv").exists():

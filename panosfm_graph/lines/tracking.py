@@ -55,6 +55,14 @@ def _lines(endpoints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return d, np.concatenate([n, -np.sum(n * endpoints[:, :2], axis=1, keepdims=True)], axis=1)
 
 
+def overlap_along(ea: np.ndarray, eb: np.ndarray, db: np.ndarray) -> np.ndarray:
+    """Returns (A, B) how far segments a and b overlap along b's unit direction ``db`` (px; negative: the gap)."""
+    pa0, pa1 = ea[:, :2] @ db.T, ea[:, 2:] @ db.T  # a's endpoints along each b's direction
+    pb0, pb1 = np.sum(eb[:, :2] * db, axis=1), np.sum(eb[:, 2:] * db, axis=1)
+    return (np.minimum(np.maximum(pa0, pa1), np.maximum(pb0, pb1)[None])
+            - np.maximum(np.minimum(pa0, pa1), np.minimum(pb0, pb1)[None]))
+
+
 def colinear_groups(
     segments: Segments, labels: np.ndarray, dist_px: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -92,13 +100,7 @@ def colinear_groups(
         longer = length[m][:, None] >= length[m][None, :]
         ok = longer & (far < dist_px) & (labels[m][:, None] == labels[m][None, :])
         # pieces lie side by side along the line; two that overlap are two lines (the edges of a trim)
-        dm = d[m]
-        p0 = np.sum(e[:, :2][None] * dm[:, None], axis=-1)  # [i, j]: j's endpoints along i's direction
-        p1 = np.sum(e[:, 2:][None] * dm[:, None], axis=-1)
-        own0, own1 = np.diagonal(p0), np.diagonal(p1)
-        overlap = (np.minimum(np.maximum(p0, p1), np.maximum(own0, own1)[:, None])
-                   - np.maximum(np.minimum(p0, p1), np.minimum(own0, own1)[:, None]))
-        ok &= overlap <= dist_px
+        ok &= overlap_along(e, e, d[m]).T <= dist_px  # [i, j] along i's direction
         np.fill_diagonal(ok, False)
         i, j = np.nonzero(ok)
         src.append(m[i])
@@ -166,11 +168,7 @@ def match_pair(
         tol = np.maximum(tol, np.arctan(angle_px / np.maximum(short, 1e-9)))
     ok = (la[:, None] == lb[None, :]) & (cos > np.cos(tol)) & (gate < dist_px)
     if gap_px is not None:  # the two must overlap along the line (up to gap_px): image-colinear lines at other depths do not
-        pa0, pa1 = wa[:, :2] @ db.T, wa[:, 2:] @ db.T  # (A, B) a's endpoints along b's direction
-        pb0, pb1 = np.sum(eb64[:, :2] * db, axis=1), np.sum(eb64[:, 2:] * db, axis=1)
-        lo = np.maximum(np.minimum(pa0, pa1), np.minimum(pb0, pb1)[None])
-        hi = np.minimum(np.maximum(pa0, pa1), np.maximum(pb0, pb1)[None])
-        ok &= lo - hi < gap_px
+        ok &= -overlap_along(wa, eb64, db) < gap_px
     cost = np.where(ok, score, np.inf)
     if cost.size == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
