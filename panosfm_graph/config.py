@@ -77,6 +77,9 @@ class TrackingConfig:
     match_angle_px: float = 1.0  # >0: angle tolerance max(match_angle_deg, atan(this / shorter length)) (0: paper)
     colinear_px: float = 1.0  # >0: colinear pieces of one frame (within this) are matched as one (0: paper)
     match_gap_frac: float | None = 0.0  # matched segments overlap along the line up to a gap of this * min(w, h) (None: paper)
+    # refine each frame pair's rotation homography by the image shift that best aligns its first matches,
+    # then match again (the paper refines its homography by image features); 0: off
+    shift_min_matches: int = 4
 
 
 @dataclass(frozen=True)

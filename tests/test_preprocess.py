@@ -423,3 +423,45 @@ def test_image_colinear_lines_side_by_side_do_not_match():
     for piece, gap, expected in ((right, None, 1), (right, 0.0, 0), (right, 50.0, 1), (over, 0.0, 1)):
         ia, ib, _ = match_pair(a, lab, piece, lab, H, dist_px=27.0, angle_deg=1.0, gap_px=gap)
         assert len(ia) == expected, (piece, gap)
+
+
+def _shifted_pair(shift):
+    """Two frames of one view: 6 horizontal and 6 vertical lines, a door trim (two verticals 5 px apart);
+    frame 1 is frame 0 moved by ``shift`` px (parallax / rotation error the homography does not model)."""
+    rng = np.random.default_rng(3)
+    hz = [[60, y, 260, y] for y in (30, 70, 95, 140, 160, 175)]
+    vt = [[x, 20, x, 170] for x in (40, 110, 150, 210, 280, 300)] + [[180, 30, 180, 160], [185, 30, 185, 160]]
+    e0 = np.array(hz + vt, np.float64)
+    e1 = e0 + np.tile(shift, 2) + rng.normal(0, 0.2, e0.shape)
+    labels = np.array([0] * len(hz) + [2] * len(vt), np.int8)
+    n = len(e0)
+    seg = Segments(endpoints=np.concatenate([e0, e1]).astype(np.float32), frame=np.repeat([0, 1], n).astype(np.int32),
+                   frame_offsets=np.array([0, n, 2 * n]), colors=np.zeros((2 * n, 3), np.uint8))
+    return seg, np.concatenate([labels, labels]), n
+
+
+def test_residual_shift_recovers_an_image_translation():
+    from panosfm_graph.lines.tracking import residual_shift
+
+    seg, _, n = _shifted_pair(np.array([4.0, -1.5]))
+    e = seg.endpoints.astype(np.float64)
+    np.testing.assert_allclose(residual_shift(e[:n], e[n:]), [4.0, -1.5], atol=0.15)
+    # only vertical lines: y is unconstrained and stays 0
+    t = residual_shift(e[6:n], e[n + 6:])
+    assert abs(t[0] - 4.0) < 0.15 and abs(t[1]) < 1e-3
+
+
+def test_shift_refinement_keeps_a_trims_two_edges_apart():
+    """A 4 px unmodelled shift crosses the matches of two lines 5 px apart; the refined homography does not."""
+    from panosfm_graph.lines.tracking import track_lines as track_segments
+
+    seg, labels, n = _shifted_pair(np.array([4.0, 0.0]))
+    K = np.array([[300.0, 0, 160], [0, 300.0, 90], [0, 0, 1]])
+    R = np.repeat(np.eye(3)[None], 2, axis=0)
+    for m, crossed in ((0, True), (4, False)):
+        cfg = with_overrides(Config(), tracking={"shift_min_matches": m})
+        tracks = track_segments(seg, labels, K, R, cfg.tracking, image_size=(320, 180))
+        t0, t1 = tracks.track_of[:n], tracks.track_of[n:]
+        right = (t0 >= 0) & (t0 == t1)  # segment k of frame 0 and segment k of frame 1 in one track
+        assert right[:12].all()  # well-separated lines match either way
+        assert right[12:].all() != crossed, (m, t0[12:], t1[12:])

@@ -19,8 +19,10 @@ Per synthetic scene (synthesised into ``OUT/captures`` unless already there):
   fraction of those matched segments that got any label (recall);
 * track purity: per track, the largest fraction of its members (those on a
   GT edge) lying on one GT 3D line (colinear GT edges, and parallel ones
-  within 3 cm, count as one line; GT matching ignores occlusion, so a
-  segment may be credited to a hidden edge nearby); mean track length, and
+  within 3 cm, count as one line; a segment within ``--gt-px`` of two GT
+  lines -- a trim's two edges seen head-on project 2-3 px apart -- lies on
+  both; GT matching ignores occlusion, so a segment may be credited to a
+  hidden edge nearby); mean track length, and
   tracks obtained with larger frame-pair windows (``--windows``);
 * seconds per stage, peak memory (ru_maxrss of this process and children).
 """
@@ -52,14 +54,16 @@ def rotation_errors(R_est: np.ndarray, R_gt: np.ndarray) -> tuple[np.ndarray, np
     return rotation_angle_deg(np.einsum("ij,fjk->fik", A, R_est), R_gt), A
 
 
-def gt_edge_of_segments(segments, K, R_gt, c_gt, lines, tol_px: float, angle_deg: float = 2.0) -> np.ndarray:
-    """Returns (S,) index of the GT 3D edge each detected segment lies on (-1: none).
+def gt_edge_distances(segments, K, R_gt, c_gt, lines, tol_px: float, angle_deg: float = 2.0):
+    """Returns (segment ids, GT edge ids, distances px) of every segment / GT 3D edge pair that fit.
 
     GT edges are clipped to the front of each camera (z > 0.05 m) and
-    projected; a segment matches an edge when both its endpoints lie within
+    projected; a segment fits an edge when both its endpoints lie within
     ``tol_px`` of the projected edge and their directions differ < ``angle_deg``.
+    A segment may fit several edges (a trim's two edges 4 cm apart in depth
+    project 2-3 px apart when seen head-on).
     """
-    out = np.full(segments.n, -1, dtype=np.int64)
+    out_s, out_e, out_d = [], [], []
     A, B = lines[:, :3], lines[:, 3:6]
     for f in range(len(R_gt)):
         sl = segments.of_frame(f)
@@ -87,12 +91,42 @@ def gt_edge_of_segments(segments, K, R_gt, c_gt, lines, tol_px: float, angle_deg
         dist = np.maximum(seg_dist(e[:, :2]), seg_dist(e[:, 2:]))
         d_seg = e[:, 2:] - e[:, :2]
         cos = np.abs(d_seg @ d_gt.T) / (np.linalg.norm(d_seg, axis=1)[:, None] * np.sqrt(L2)[None] + 1e-12)
-        ok = vis[None] & (dist < tol_px) & (cos > np.cos(np.radians(angle_deg)))
-        cost = np.where(ok, dist, np.inf)
-        best = np.argmin(cost, axis=1)
-        hit = np.isfinite(cost[np.arange(len(e)), best])
-        out[sl.start + np.flatnonzero(hit)] = best[hit]
+        s, m = np.nonzero(vis[None] & (dist < tol_px) & (cos > np.cos(np.radians(angle_deg))))
+        out_s.append(sl.start + s)
+        out_e.append(m)
+        out_d.append(dist[s, m])
+    if not out_s:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    return np.concatenate(out_s), np.concatenate(out_e), np.concatenate(out_d)
+
+
+def gt_edge_of_segments(segments, K, R_gt, c_gt, lines, tol_px: float, angle_deg: float = 2.0) -> np.ndarray:
+    """Returns (S,) index of the GT 3D edge each detected segment lies on, the nearest that fits (-1: none)."""
+    s, e, d = gt_edge_distances(segments, K, R_gt, c_gt, lines, tol_px, angle_deg)
+    out = np.full(segments.n, -1, dtype=np.int64)
+    order = np.lexsort((d, s))
+    first = np.r_[True, s[order][1:] != s[order][:-1]] if len(s) else np.zeros(0, bool)
+    out[s[order][first]] = e[order][first]
     return out
+
+
+def track_purity(track_of: np.ndarray, seg_ids: np.ndarray, line_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Returns (purity (T,), members on a GT line (T,)) of tracks given the (segment, GT line) pairs that fit.
+
+    A track's purity is the largest share of its members (those that fit
+    some GT line) that fit one and the same GT line; a segment fitting two
+    lines (image-coincident in that frame) counts for both, since nothing
+    in the image says which it is. NaN for a track with no such member.
+    """
+    T = int(track_of.max()) + 1 if len(track_of) and track_of.max() >= 0 else 0
+    keep = track_of[seg_ids] >= 0
+    pairs = np.unique(np.column_stack([track_of[seg_ids[keep]], seg_ids[keep], line_ids[keep]]), axis=0)
+    known = np.bincount(np.unique(pairs[:, :2], axis=0)[:, 0], minlength=T)
+    tl, cnt = np.unique(pairs[:, [0, 2]], axis=0, return_counts=True)
+    best = np.zeros(T)
+    np.maximum.at(best, tl[:, 0], cnt)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(known > 0, best / known, np.nan), known
 
 
 def gt_line_groups(lines: np.ndarray, labels: np.ndarray, D_gt: np.ndarray, tol_m: float = 0.03) -> np.ndarray:
@@ -136,15 +170,11 @@ def evaluate(capture, pre, tracks, gt_px: float) -> dict:
     acc = float(np.mean(pred[labelled] == gt_lab[labelled])) if labelled.any() else float("nan")
 
     line_id = gt_line_groups(gt.lines, gt.line_labels, D_gt)
-    seg_line = np.where(has_gt, line_id[np.maximum(seg_edge, 0)], -1)
-    seg, offsets = tracks.members()
-    purities, lengths, known_frac = [], np.diff(offsets), []
-    for t in range(tracks.n):
-        ids = seg_line[seg[offsets[t] : offsets[t + 1]]]
-        known = ids[ids >= 0]
-        known_frac.append(len(known) / len(ids))
-        if len(known):  # purity among the members that lie on a GT edge
-            purities.append(np.bincount(known).max() / len(known))
+    fit_s, fit_e, _ = gt_edge_distances(pre.segments, K, gt.R_wc, gt.centers, gt.lines, gt_px)
+    purity, known = track_purity(np.asarray(tracks.track_of), fit_s, line_id[fit_e])
+    lengths = np.diff(tracks.members()[1])
+    purities = purity[known > 0]
+    known_frac = known / np.maximum(lengths, 1)
     return {
         "frames": capture.n_frames,
         "segments": int(pre.segments.n),
@@ -158,8 +188,8 @@ def evaluate(capture, pre, tracks, gt_px: float) -> dict:
         "labelling_recall": float(np.mean(pre.labels[has_gt] >= 0)) if has_gt.any() else float("nan"),
         "segments_on_gt_edges": float(np.mean(has_gt)),
         "tracks": int(tracks.n),
-        "track_purity_mean": float(np.mean(purities)) if purities else float("nan"),
-        "track_members_on_gt_edges": float(np.mean(known_frac)) if known_frac else float("nan"),
+        "track_purity_mean": float(np.mean(purities)) if len(purities) else float("nan"),
+        "track_members_on_gt_edges": float(np.mean(known_frac)) if len(known_frac) else float("nan"),
         "track_length_mean": float(lengths.mean()) if len(lengths) else 0.0,
         "tracked_fraction": float(np.sum(tracks.track_of >= 0) / max(np.sum(pre.labels >= 0), 1)),
     }
