@@ -232,7 +232,8 @@ def verify_floor(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     beds and sofa seats (all horizontal), and one furniture top taken for the floor makes the
     metric scale wrong. The floor is the LOWEST horizontal plane, which a first solve without the
     floor relations shows: each floor candidate line's depth below the mean camera height is
-    compared with the deepest horizontal lines' (the 90th percentile); lines less than
+    compared with the deepest horizontal lines' (the 90th percentile, or the deepest candidate when it
+    lies deeper: with little floor in view most lines below the cameras are furniture); lines less than
     ``floor_verify_ratio`` of that deep (a desk top 0.7 m below a 1.45 m camera: 0.48) are no floor.
     With fewer than 5 horizontal lines below the cameras the candidates are compared among
     themselves, and with fewer than 3 candidates nothing can be verified: all are dropped (the
@@ -259,7 +260,9 @@ def verify_floor(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     below = cam_h - first.lines.taylor[horizontal] @ up
     below = below[below > 0]
     if len(below) >= 5:
-        ref = float(np.percentile(below, 90))
+        # the floor is the lowest plane: a candidate deeper than most horizontal lines (when few floor
+        # lines are in view, most lines below the cameras are furniture) raises the reference
+        ref = float(max(np.percentile(below, 90), depth.max()))
     elif len(depth) >= 3:
         ref = float(np.percentile(depth, 90))
     else:  # nothing to compare with: one or two floor lines may as well be a bed top; the scale stays arbitrary

@@ -263,6 +263,37 @@ def test_furniture_tops_taken_for_floor_are_dropped(clean):
         assert (abs(s - 1) < 0.01) == ok, s  # the metric scale is right only without the furniture tops
 
 
+def test_floor_reference_is_the_deepest_candidate_when_little_floor_is_in_view(clean):
+    """Most horizontal lines below the cameras are furniture: the one deep floor line sets the reference."""
+    p = clean
+    r = p.relations
+    room_z = (p.gt_track_lines[:, 2] + p.gt_track_lines[:, 5]) / 2 - p.scene.to_world(np.zeros(3))[2]
+    horizontal = p.tracks.axis != 2
+    floor_rel = np.flatnonzero(r.kind == FLOOR)
+    keep_floor = floor_rel[np.argmax(r.support[floor_rel])]  # one floor line stays in view
+    low = horizontal & (room_z < 0.05)
+    low[r.track_a[keep_floor]] = False
+    # hide every other floor-level line: only furniture remains below the cameras
+    track_of = np.where(low[np.maximum(p.tracks.track_of, 0)] & (p.tracks.track_of >= 0), -1, p.tracks.track_of)
+    tracks = Tracks(track_of=track_of.astype(np.int32), axis=p.tracks.axis)
+    tops = np.flatnonzero(horizontal & (room_z > 0.3) & (room_z < 1.0))
+    keep = (r.kind != FLOOR) & ~low[r.track_a] & ~low[np.maximum(r.track_b, 0)]
+    keep[keep_floor] = True
+    base = r.subset(keep)
+    rel = Relations(np.concatenate([base.kind, np.full(len(tops), FLOOR, np.int8)]),
+                    np.concatenate([base.track_a, tops.astype(np.int32)]),
+                    np.concatenate([base.track_b, np.full(len(tops), -1, np.int32)]),
+                    np.concatenate([base.normal_axis, np.full(len(tops), 2, np.int8)]),
+                    np.concatenate([base.support, np.ones(len(tops), np.int32)]))
+    below = horizontal & ~low & (room_z < 1.4)
+    assert np.sum(below & (room_z > 0.3)) > 9 * np.sum(below & (room_z < 0.05))  # the 90th percentile is furniture
+    sol = solve_linear(p.preprocessed, tracks, rel, p.camera, LinearConfig(camera_height_m=_height(p)))
+    assert sol.residuals["floor_relations_rejected"] == len(tops)
+    reg = sol.registered
+    s, R, t = umeyama(sol.centers[reg], p.gt_centers[reg])
+    assert abs(s - 1) < 0.01, s
+
+
 def test_robust_solve_resists_false_relations():
     """Our option (off by default, see LinearConfig): Cauchy IRLS on the relation rows and the observations."""
     errs = {}
