@@ -155,3 +155,39 @@ def test_oracle_without_ground_truth_is_an_input_error(room):
     P, cap = room
     with pytest.raises(InputError):
         estimate_normals(dataclasses.replace(cap, ground_truth=None), P.preprocessed, NormalsConfig(source="oracle"))
+
+
+def test_orientation_map_fusion_votes_across_neighbouring_frames():
+    """Our deviation: maps of frames within fuse_deg are warped by the rotation homography and vote."""
+    from types import SimpleNamespace
+
+    from panosfm_graph.normals.orientation_map import OrientationMapNormals
+
+    h, w = 40, 80
+    cam = SimpleNamespace(K=np.array([[50.0, 0, 39.5], [0, 50.0, 19.5], [0, 0, 1]]))
+    th = np.radians(8.0)
+    Ry = np.array([[np.cos(th), 0, np.sin(th)], [0, 1, 0], [-np.sin(th), 0, np.cos(th)]])
+    far = np.radians(40.0)
+    Rfar = np.array([[np.cos(far), 0, np.sin(far)], [0, 1, 0], [-np.sin(far), 0, np.cos(far)]])
+    pre = SimpleNamespace(R_wc=np.stack([np.eye(3), np.eye(3), np.eye(3), Ry, Rfar]))
+    maps = np.full((5, h, w), -1, np.int8)
+    maps[0, :, :40] = 0  # frame 0 labels the left half only
+    maps[1, :, :40] = 0
+    maps[1, :, 60:] = 2
+    maps[2, :, :40] = 1  # a minority label on the left
+    maps[2, :, 60:] = 2
+    maps[3, :, 39:41] = 1  # frame 3 (8 degrees away) labels its centre column
+    maps[4] = 1  # 40 degrees away: not a neighbour
+    src = OrientationMapNormals(NormalsConfig(fuse_deg=10.0, fuse_share=0.6))
+    src.prepare(None, pre)
+    src._orient = {f: maps[f] for f in range(5)}
+    fused = src.fused_orientation(SimpleNamespace(camera=cam), pre, 0, h, w, 1.0)
+    assert np.all(fused[:, :30] == 0)  # 2 of 3 votes
+    assert np.all(fused[:, 60:] == 2)  # filled from the neighbours
+    x = 39.5 + 50.0 * np.tan(th)  # frame 3's centre column seen from frame 0
+    col = np.flatnonzero(np.all(fused == 1, axis=0))
+    assert len(col) and np.all(np.abs(col - x) <= 1.5), (col, x)
+    single = OrientationMapNormals(NormalsConfig(fuse_deg=0.0))
+    single.prepare(None, pre)
+    single._orient = {0: maps[0]}
+    np.testing.assert_array_equal(single.fused_orientation(None, pre, 0, h, w, 1.0), maps[0])

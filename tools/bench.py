@@ -35,7 +35,8 @@ def _run(cmd: list[str]) -> tuple[int, float, str]:
 
 
 def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peers: list[str],
-          seed: int = 0, reuse_peer: bool = False, seeds: int = 1, settings: list[str] = ()) -> dict:
+          seed: int = 0, reuse_peer: bool = False, seeds: int = 1, settings: list[str] = (),
+          resume: bool = False) -> dict:
     """Returns the benchmark record (also written to ``out/bench.json`` and ``out/bench.md``)."""
     from panosfm_graph.capture import load_capture
     from panosfm_graph.evaluate import evaluate_reconstruction
@@ -59,7 +60,8 @@ def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peer
         entry = {}
         rec = out / "runs" / name / "panosfm"
         code, secs, err = _run([sys.executable, "-m", "panosfm_graph", "run", str(cap), str(rec),
-                                "--camera-height", f"{height:.4f}", "--no-rerun", *set_args])
+                                "--camera-height", f"{height:.4f}", "--no-rerun", *set_args,
+                                *(["--resume"] if resume else [])])
         entry["panosfm"] = _score(rec, cap, code, secs, err, evaluate_reconstruction)
         print(f"[{name}] panosfm: {_line(entry['panosfm'])}", flush=True)
         for mapper in peers:
@@ -189,6 +191,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="reuse a peer reconstruction already in OUT/runs (same capture, same settings)")
     p.add_argument("--peer", default="auto", help="'auto' (incremental if pycolmap is installed), 'none', "
                    "or a comma list of incremental,global")
+    p.add_argument("--resume", action="store_true",
+                   help="reuse the cached stages of earlier runs in OUT (copy a runs/ folder there): fast setting "
+                        "sweeps; seconds then no longer measure the whole pipeline")
     p.add_argument("--seeds", type=int, default=1, help="captures per scene (seeds SEED + k + 10 j)")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
                    help="a pipeline setting for panosfm run (repeatable)")
@@ -205,7 +210,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         peers = [s.strip() for s in args.peer.split(",") if s.strip()]
     bench([s.strip() for s in args.scenes.split(",")], args.frames, (w, h), Path(args.out), peers, args.seed,
-          args.reuse_peer, args.seeds, args.set)
+          args.reuse_peer, args.seeds, args.set, args.resume)
     return 0
 
 

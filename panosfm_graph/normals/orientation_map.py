@@ -15,6 +15,13 @@ Vectorised per frame: the stopping distances for all segments of one
 direction against all blocking segments are one numpy broadcast; each swept
 quad is one ``cv2.fillConvexPoly`` into a per-(a, b) mask at the normal map's
 low resolution. This is the fallback source when no model is usable.
+
+Beyond Lee et al., the maps of neighbouring frames are fused
+(:meth:`OrientationMapNormals.fused_orientation`, ``NormalsConfig.fuse_deg``):
+a spin sees every direction in dozens of frames, so a majority vote over
+the frames within 10 degrees raises the labelled share of the pixels
+(living, 300 frames: coverage 0.50 -> 0.62, 90 -> 88 % of them within 20
+degrees of the truth) and end-to-end accuracy (README, benchmark).
 """
 from __future__ import annotations
 
@@ -116,17 +123,61 @@ class OrientationMapNormals(NormalSource):
 
     def prepare(self, capture: Capture, pre: Preprocessed) -> None:
         self._rays = None
+        self._orient: dict = {}
+
+    def _orientation(self, capture, pre, f, h, w, scale) -> np.ndarray:
+        """Returns frame ``f``'s (h, w) int8 orientation map (Manhattan axis of the normal, -1 unknown), cached."""
+        if f not in self._orient:
+            sl = pre.segments.of_frame(f)
+            ep = pre.segments.endpoints[sl].astype(np.float64) * scale
+            K_low = np.diag([scale, scale, 1.0]) @ capture.camera.K
+            vps = (pre.manhattan.directions @ pre.R_wc[f]) @ K_low.T
+            self._orient[f] = orientation_map(ep, pre.labels[sl], vps, h, w)
+        return self._orient[f]
+
+    def fused_orientation(self, capture, pre, f, h, w, scale) -> np.ndarray:
+        """Returns frame ``f``'s orientation map fused with its neighbours' (a deviation from Lee et al.).
+
+        The spin sees every direction in dozens of frames; one frame's map is
+        bounded by its image border and by the segments it happened to
+        detect. The maps of the frames whose optical axes are within
+        ``fuse_deg`` are warped into frame ``f`` by the rotation homography
+        (the camera's few-centimetre translation is below a low-resolution
+        pixel at room depths) and vote per pixel; the winning axis needs
+        ``fuse_share`` of the frames that label the pixel.
+        """
+        deg = self.config.fuse_deg
+        if deg <= 0:
+            return self._orientation(capture, pre, f, h, w, scale)
+        axes = pre.R_wc[:, :, 2]
+        near = np.flatnonzero(axes @ axes[f] >= np.cos(np.radians(deg)))
+        K_low = np.diag([scale, scale, 1.0]) @ capture.camera.K
+        K_inv = np.linalg.inv(K_low)
+        votes = np.zeros((h, w, 3), np.int16)  # per pixel: frames voting x, y, z
+        for g in near:
+            H = K_low @ pre.R_wc[f].T @ pre.R_wc[g] @ K_inv  # pixels of g -> pixels of f
+            votes += cv2.warpPerspective(self._one_hot(capture, pre, g, h, w, scale), H, (w, h),
+                                         flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        labelled = votes.sum(axis=2)
+        best = np.argmax(votes, axis=2)
+        win = np.take_along_axis(votes, best[..., None], axis=2)[..., 0]
+        ok = (labelled > 0) & (win >= self.config.fuse_share * labelled)
+        return np.where(ok, best, -1).astype(np.int8)
+
+    def _one_hot(self, capture, pre, g, h, w, scale) -> np.ndarray:
+        """Returns frame ``g``'s orientation map as an (h, w, 3) uint8 one-hot image (all 0: unknown), cached."""
+        key = ("one-hot", g)
+        if key not in self._orient:
+            o = self._orientation(capture, pre, g, h, w, scale)
+            self._orient[key] = (o[..., None] == np.arange(3)).astype(np.uint8)
+        return self._orient[key]
 
     def camera_normals(self, capture, pre, f, h, w, scale):
         """Returns frame ``f``'s camera-frame Manhattan normals (towards the camera) and where the orientation map is known."""
         if self._rays is None:
             self._rays = lowres_rays(capture.camera, h, w, scale)
-        sl = pre.segments.of_frame(f)
-        ep = pre.segments.endpoints[sl].astype(np.float64) * scale
-        K_low = np.diag([scale, scale, 1.0]) @ capture.camera.K
+        orient = self.fused_orientation(capture, pre, f, h, w, scale)
         dirs_c = pre.manhattan.directions @ pre.R_wc[f]  # row k = R_wc^T d_k, camera frame
-        vps = dirs_c @ K_low.T
-        orient = orientation_map(ep, pre.labels[sl], vps, h, w)
         valid = orient >= 0
         n = dirs_c[np.maximum(orient, 0)].astype(np.float32)  # (h, w, 3)
         facing = np.sum(n * self._rays, axis=-1)
