@@ -146,8 +146,11 @@ def register_frames(n_frames: int, obs_frame: np.ndarray, obs_track: np.ndarray,
                     track_axis: np.ndarray, rel_a: np.ndarray, rel_b: np.ndarray, rel_axis: np.ndarray,
                     floor_track: np.ndarray, min_view_eig: float, max_iterations: int = 10,
                     turned_deg: np.ndarray | None = None, bridge_deg: float = 0.0,
-                    manhattan: np.ndarray = np.eye(3)) -> np.ndarray:
-    """Returns (F,) bool: frames whose translation the linear solve can determine (paper §3.3).
+                    manhattan: np.ndarray = np.eye(3)) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((F,) bool frames whose translation the linear solve can determine, (F,) int8 reasons) (paper §3.3).
+
+    ``reasons`` index :data:`UNREGISTERED_REASONS` (0 for a registered frame):
+    the first criterion a frame fails at the fixed point, so that users see why.
 
     ``obs_*`` describe the tracked observations (frame, track, unit interpretation-plane normal
     ``N_axis x D``); ``rel_*`` the usable pair coplanarities (tracks, normal axis);
@@ -159,6 +162,9 @@ def register_frames(n_frames: int, obs_frame: np.ndarray, obs_track: np.ndarray,
     F, T = n_frames, len(track_axis)
     kept = np.zeros(F, bool)
     kept[obs_frame] = True
+    has_obs = kept.copy()
+    linked = np.zeros((F, 3), bool)
+    weak = np.zeros((F, 3), bool)
     turned = np.zeros(F) if turned_deg is None else np.asarray(turned_deg, dtype=np.float64)
     for _ in range(max_iterations):
         o = kept[obs_frame]
@@ -189,20 +195,54 @@ def register_frames(n_frames: int, obs_frame: np.ndarray, obs_track: np.ndarray,
         cls_id, inv = np.unique(lab[kept], axis=0, return_inverse=True)
         inv = np.ravel(inv)
         if len(cls_id) == 0:
-            return np.zeros(F, bool)
+            return np.zeros(F, bool), _reasons(has_obs, np.ones((F, 3), bool), np.zeros((F, 3), bool), np.zeros(F, bool))
         counts = np.bincount(inv)
         best = cls_id[np.argmax(counts)]  # np.argmax: first (earliest-labelled) class on ties
         # (2) the interpretation planes of the frame's informative observations span 3D
         scatter = np.zeros((F, 3, 3))
         np.add.at(scatter, obs_frame[oi], obs_normal[oi, :, None] * obs_normal[oi, None, :])
-        determined = (lab == best[None]) & kept[:, None] & ~weak_axes(scatter, min_view_eig, manhattan)
+        linked = lab == best[None]
+        weak = weak_axes(scatter, min_view_eig, manhattan)
+        determined = linked & kept[:, None] & ~weak
         new = bridge_frames(determined.all(axis=1), determined, turned, bridge_deg)
         if bridge_deg > 0:  # every frame stays in the solve (the motion prior holds it): no cascade
-            return new
+            return new, _reasons(has_obs, ~linked, weak, new)
         if np.array_equal(new, kept):
             break
         kept = new
-    return kept
+    return kept, _reasons(has_obs, ~linked, weak, kept)
+
+
+UNREGISTERED_REASONS = (
+    "registered",
+    "no tracked Manhattan line",
+    "not linked to the other frames along Manhattan axis x",
+    "not linked to the other frames along Manhattan axis y",
+    "not linked to the other frames along the vertical",
+    "its lines do not fix its position along Manhattan axis x",
+    "its lines do not fix its position along Manhattan axis y",
+    "its lines do not fix its height",
+    "bundle adjustment could not determine its position",
+)
+REASON_BUNDLE_ADJUST = len(UNREGISTERED_REASONS) - 1
+
+
+def _reasons(has_obs: np.ndarray, unlinked: np.ndarray, weak: np.ndarray, registered: np.ndarray) -> np.ndarray:
+    """Returns (F,) int8 codes into :data:`UNREGISTERED_REASONS`: the first criterion each frame fails."""
+    code = np.zeros(len(has_obs), np.int8)
+    first_unlinked = np.argmax(unlinked, axis=1)
+    first_weak = np.argmax(weak, axis=1)
+    code = np.where(weak.any(axis=1), 5 + first_weak, code)
+    code = np.where(unlinked.any(axis=1), 2 + first_unlinked, code)
+    code = np.where(has_obs, code, 1)
+    code = np.where(registered, 0, code)
+    return np.where(~registered & (code == 0), 2, code).astype(np.int8)  # fails only in the cascade: unlinked
+
+
+def reason_counts(codes: np.ndarray, registered: np.ndarray) -> dict[str, int]:
+    """Returns {reason: number of frames} of the unregistered frames (see :data:`UNREGISTERED_REASONS`)."""
+    c = np.bincount(np.asarray(codes)[~np.asarray(registered, bool)], minlength=len(UNREGISTERED_REASONS))
+    return {UNREGISTERED_REASONS[i]: int(n) for i, n in enumerate(c) if n and i}
 
 
 def weak_axes(information: np.ndarray, min_eig: float, manhattan: np.ndarray = np.eye(3)) -> np.ndarray:
@@ -363,10 +403,12 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     if config.zero_translation:
         registered = np.zeros(F, bool)
         registered[o_frame] = True
+        reasons = np.where(registered, 0, 1).astype(np.int8)
     else:
         bridge = config.motion_bridge_deg if config.motion_weight > 0 else 0.0
-        registered = register_frames(F, o_frame, o_track, n_int, axis, r_a, r_b, r_k, f_t, config.min_view_eig,
-                                     turned_deg=turned_degrees(pre.R_wc), bridge_deg=bridge, manhattan=M)
+        registered, reasons = register_frames(F, o_frame, o_track, n_int, axis, r_a, r_b, r_k, f_t,
+                                              config.min_view_eig, turned_deg=turned_degrees(pre.R_wc),
+                                              bridge_deg=bridge, manhattan=M)
     solved = registered.copy()
     if not config.zero_translation and config.motion_weight > 0 and config.motion_bridge_deg > 0:
         # every observing frame is an unknown: its observations still constrain the lines along the
@@ -599,6 +641,8 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
         "scale_factor": float(s),  # final units per solve units (the depth bound applies in solve units)
         "depth_min": float(lam.min()) if len(lam) else None,
         "depth_median": float(np.median(lam)) if len(lam) else None,
+        "unregistered_reasons": reason_counts(reasons, registered),
+        "unregistered_reason_codes": reasons.tolist(),  # per frame, into UNREGISTERED_REASONS
     }
     a1 = xr[c_t1] - xr[c_u1] + lam * e1
     a2 = xr[c_t2] - xr[c_u2] + lam * e2

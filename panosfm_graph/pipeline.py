@@ -19,6 +19,7 @@ import resource
 import shutil
 import threading
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -63,6 +64,8 @@ class RunResult:
         if fr:
             lines.append(f"  frames      {fr.get('registered', 0)}/{fr.get('total', 0)} registered "
                          f"({100.0 * fr.get('registered_ratio', 0.0):.1f} %)")
+            for why, count in sorted(fr.get("unregistered_reasons", {}).items(), key=lambda kv: -kv[1]):
+                lines.append(f"              {count} not: {why}")
         if "segments" in s:
             lines.append(f"  segments    {s['segments']['total']} ({s['segments']['manhattan']} Manhattan), "
                          f"{s.get('tracks', 0)} tracks, {s.get('lines', 0)} 3D lines")
@@ -287,6 +290,23 @@ def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
 
 # --- outputs ----------------------------------------------------------------------------------------
 
+def unregistered_why(result: RunResult, n_frames: int) -> list[str]:
+    """Returns, per frame, why it is not registered ("registered" where it is), in words.
+
+    The linear solve's registration criteria (:func:`linear.register_frames`) say why it left a
+    frame out; a frame it kept that the bundle adjustment dropped could not be determined there.
+    """
+    from .linear import REASON_BUNDLE_ADJUST, UNREGISTERED_REASONS
+
+    codes = np.ones(n_frames, np.int64)  # no linear solve: as if no line
+    if result.linear is not None and "unregistered_reason_codes" in result.linear.residuals:
+        codes = np.asarray(result.linear.residuals["unregistered_reason_codes"], np.int64)
+    sol = result.solution
+    if sol is not None and result.linear is not None:
+        codes = np.where(result.linear.registered & ~sol.registered, REASON_BUNDLE_ADJUST, codes)
+    return [UNREGISTERED_REASONS[c] for c in codes]
+
+
 def _summary(capture: Capture, segments: Segments, result: RunResult, config: Config,
              timings: dict[str, float], resumed: list[str], t_start: float) -> dict:
     from .export import package_versions
@@ -295,12 +315,20 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
     pre = result.preprocessed
     n = capture.n_frames
     registered = int(sol.registered.sum()) if sol is not None else 0
+    why = unregistered_why(result, n)
+    linear_res = dict(result.linear.residuals) if result.linear is not None else None
+    if linear_res is not None:
+        linear_res.pop("unregistered_reason_codes", None)
     summary: dict[str, Any] = {
         "panosfm_version": __version__,
         "capture": str(Path(capture.root).resolve()),
         "frames": {"total": n, "registered": registered, "registered_ratio": registered / max(n, 1),
                    "unregistered": [capture.frame_names[i] for i in np.flatnonzero(~sol.registered)]
-                   if sol is not None else list(capture.frame_names)},
+                   if sol is not None else list(capture.frame_names),
+                   # why each unregistered frame is (aligned with "unregistered"), and how many per reason
+                   "unregistered_why": [why[i] for i in np.flatnonzero(~sol.registered)] if sol is not None else [],
+                   "unregistered_reasons": dict(Counter(why[i] for i in np.flatnonzero(~sol.registered)))
+                   if sol is not None else {}},
         "segments": {"total": segments.n,
                      "manhattan": int(np.sum(pre.labels >= 0)) if pre is not None else 0},
         "tracks": result.tracks.n if result.tracks is not None else 0,
@@ -310,7 +338,7 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
         "metric": bool(sol.metric) if sol is not None else False,
         "scale": ("metric (camera height %.3f m)" % config.linear.camera_height_m
                   if sol is not None and sol.metric else "arbitrary"),
-        "residuals": {"linear": result.linear.residuals if result.linear is not None else None,
+        "residuals": {"linear": linear_res,
                       "bundle_adjust": (sol.residuals if sol is not None and sol is not result.linear
                                         else None)},
         "seconds": {k: round(v, 3) for k, v in timings.items()},

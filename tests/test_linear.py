@@ -124,6 +124,16 @@ def test_disconnected_halves_register_only_the_larger(clean):
     s, R, t = umeyama(sol.centers[reg], p.gt_centers[reg])
     err = np.linalg.norm((s * (R @ sol.centers[reg].T)).T + t - p.gt_centers[reg], axis=1)
     assert err.max() < 1e-3 and abs(s - 1) < 0.01
+    # the user is told why: the smaller half is not linked along a horizontal axis (the floor links heights)
+    from panosfm_graph.linear import UNREGISTERED_REASONS
+
+    codes = np.asarray(sol.residuals["unregistered_reason_codes"])
+    assert np.all(codes[reg] == 0)
+    why = {UNREGISTERED_REASONS[c] for c in codes[split:]}
+    assert UNREGISTERED_REASONS[2] in why or UNREGISTERED_REASONS[3] in why, why
+    assert why <= {UNREGISTERED_REASONS[1], UNREGISTERED_REASONS[2], UNREGISTERED_REASONS[3]}, why  # or no line left
+    assert sum(sol.residuals["unregistered_reasons"].values()) == int((~reg).sum())
+
 
 def test_depth_bound_is_respected(clean):
     p = clean

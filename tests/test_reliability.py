@@ -69,6 +69,9 @@ def check_result(out: Path, capture: Path) -> dict:
     assert len(model["images"]) == summary["frames"]["registered"]
     assert summary["frames"]["registered"] + len(summary["frames"]["unregistered"]) == summary["frames"]["total"]
     assert not set(model["images"]) & set(summary["frames"]["unregistered"])
+    why = summary["frames"]["unregistered_why"]  # every unregistered frame says why, in words
+    assert len(why) == len(summary["frames"]["unregistered"]) and "registered" not in why
+    assert sum(summary["frames"]["unregistered_reasons"].values()) == len(why)
     for im in model["images"].values():
         assert np.all(np.isfinite(im["R_wc"])) and np.all(np.isfinite(im["center"]))
     ends, _, _ = read_lines_ply(out / "lines.ply")
