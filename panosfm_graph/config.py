@@ -150,6 +150,10 @@ class LinearConfig:
     # floor relations whose line lies less than this share as deep below the cameras as the deepest floor
     # candidates (a first solve without them tells) are furniture tops, dropped (0: keep all, the paper)
     floor_verify_ratio: float = 0.85
+    # ... and fewer verified floor lines than this (distinct tracks) are dropped too: one or two lines
+    # cannot hold the metric scale (measured: with a single floor line the 'metric' result came out
+    # 1.5-2x too large on most synthetic captures); the scale is then reported arbitrary
+    min_floor_lines: int = 1
 
 
 @dataclass(frozen=True)

@@ -308,6 +308,9 @@ def verify_floor(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     else:  # nothing to compare with: one or two floor lines may as well be a bed top; the scale stays arbitrary
         ref = np.inf
     drop = np.concatenate([cand[~known], cand[known][~(depth >= config.floor_verify_ratio * ref)]])
+    kept = np.setdiff1d(cand, drop)
+    if len(np.unique(relations.track_a[kept])) < config.min_floor_lines:
+        drop = cand  # too few floor lines to hold the scale: arbitrary rather than wrong
     keep = np.ones(relations.n, bool)
     keep[drop] = False
     log.info("linear: %d of %d floor relations are above the floor (furniture tops), dropped", len(drop), len(cand))

@@ -71,7 +71,12 @@ class RunResult:
                          f"{s.get('tracks', 0)} tracks, {s.get('lines', 0)} 3D lines")
         if "relations" in s:
             lines.append("  relations   " + ", ".join(f"{k} {v}" for k, v in s["relations"].items()))
-        lines.append(f"  scale       {'metric' if s.get('metric') else 'arbitrary (no --camera-height)'}")
+        if s.get("metric"):
+            lines.append(f"  scale       {s.get('scale', 'metric')}")
+        elif s.get("config", {}).get("linear", {}).get("camera_height_m") is not None:
+            lines.append("  scale       arbitrary (no floor line verified for --camera-height)")
+        else:
+            lines.append("  scale       arbitrary (no --camera-height)")
         secs = s.get("seconds", {})
         if secs:
             lines.append("  seconds     " + ", ".join(f"{k} {v:.1f}" for k, v in secs.items()))
@@ -316,6 +321,8 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
     n = capture.n_frames
     registered = int(sol.registered.sum()) if sol is not None else 0
     why = unregistered_why(result, n)
+    # floor lines holding a metric scale: few of them (one is common) make it fragile (README)
+    n_floor = int(result.linear.residuals.get("floor_count", 0) or 0) if result.linear is not None else 0
     linear_res = dict(result.linear.residuals) if result.linear is not None else None
     if linear_res is not None:
         linear_res.pop("unregistered_reason_codes", None)
@@ -336,7 +343,8 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
         "relations": (result.relations.counts() if result.relations is not None
                       else {k: 0 for k in RELATION_NAMES}),
         "metric": bool(sol.metric) if sol is not None else False,
-        "scale": ("metric (camera height %.3f m)" % config.linear.camera_height_m
+        "scale": ("metric (camera height %.3f m, floor from %d line%s)"
+                  % (config.linear.camera_height_m, n_floor, "" if n_floor == 1 else "s")
                   if sol is not None and sol.metric else "arbitrary"),
         "residuals": {"linear": linear_res,
                       "bundle_adjust": (sol.residuals if sol is not None and sol is not result.linear

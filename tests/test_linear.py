@@ -317,3 +317,18 @@ def test_robust_solve_resists_false_relations():
     # measured: clean 2.3 / 2.1 mm; with 10 % false coplanarities 251 mm plain, 8 mm robust
     assert errs[0.0, "ours"] < 0.005 and errs[0.0, "paper"] < 0.005, errs
     assert errs[0.1, "paper"] > 0.1 and errs[0.1, "ours"] < 0.02, errs
+
+
+def test_too_few_floor_lines_leave_the_scale_arbitrary(clean):
+    """Option min_floor_lines: fewer verified floor lines than that cannot claim a metric scale."""
+    p = clean
+    r = p.relations
+    floor = np.flatnonzero(r.kind == FLOOR)
+    keep = r.kind != FLOOR
+    keep[floor[np.argmax(r.support[floor])]] = True  # one floor line left
+    rel = r.subset(keep)
+    H = _height(p)
+    one = solve_linear(p.preprocessed, p.tracks, rel, p.camera, LinearConfig(camera_height_m=H))
+    assert one.metric and one.residuals["floor_count"] == 1
+    strict = solve_linear(p.preprocessed, p.tracks, rel, p.camera, LinearConfig(camera_height_m=H, min_floor_lines=3))
+    assert not strict.metric and strict.residuals["floor_relations_rejected"] == 1
