@@ -385,7 +385,7 @@ def _export(tmp: Path, capture: Capture, segments: Segments, result: RunResult, 
 
         log_recording(tmp / "recording.rrd", capture, result.preprocessed, result.tracks, result.relations,
                       sol, spawn=spawn, batches=result.batches or None, line_colors=colors,
-                      thumbnails=result.thumbnails)
+                      thumbnails=result.thumbnails, frame_status=unregistered_why(result, capture.n_frames))
         summary["seconds"]["rerun"] = round(time.perf_counter() - t0, 3)
     summary["peak_memory_mb"] = round(peak_memory_mb(), 1)
     write_summary(tmp / "summary.json", summary)

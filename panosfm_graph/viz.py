@@ -11,6 +11,7 @@ Entities (world frame: right-handed, metres, +z up):
   ``world/camera/image/floor``    Points2D: midpoints of segments on the floor (floor relations)
   ``world/lines``                 LineStrips3D: the 3D lines whose tracks were seen so far
   ``world/cameras``               Points3D: registered camera centres so far
+  ``status``                      TextLog: "registered", or why the frame is not (WARN)
 ``batch`` timeline (incremental solves)
   ``batch/lines``, ``batch/cameras``
 static (the final model, paper §4 'three views')
@@ -105,11 +106,14 @@ def _scene_box(solution: Solution | None) -> tuple[np.ndarray, np.ndarray]:
     return _model_box(ends, cams[np.all(np.isfinite(cams), axis=1)])
 
 
-def _blueprint(solution: Solution | None, batches: list[Solution] | None, lo: np.ndarray, hi: np.ndarray):
+def _blueprint(solution: Solution | None, batches: list[Solution] | None, lo: np.ndarray, hi: np.ndarray,
+               frame_status: bool = False):
     import rerun.blueprint as rrb
 
     top = [rrb.Spatial3DView(origin="world", name="scene (frame timeline)"),
            rrb.Spatial2DView(origin="world/camera/image", name="image, segments, relations")]
+    if frame_status:
+        top.append(rrb.TextLogView(origin="status", name="frame status"))
     if batches:
         top.append(rrb.Spatial3DView(origin="batch", name="incremental solve (batch timeline)"))
     rows = [rrb.Horizontal(*top)]
@@ -177,7 +181,7 @@ def log_recording(path: str | Path | None, capture: Any, pre: Preprocessed, trac
                   relations: Relations | None, solution: Solution | None, *, spawn: bool = False,
                   batches: list[Solution] | None = None, image_width: int = 480,
                   line_colors: np.ndarray | None = None, model_updates: int = MODEL_UPDATES,
-                  thumbnails: Thumbnails | None = None) -> Path | None:
+                  thumbnails: Thumbnails | None = None, frame_status: list[str] | None = None) -> Path | None:
     """Returns the path of the finalised rerun recording of a run (or None when only spawned).
 
     ``capture`` needs ``camera``, ``n_frames`` and ``frame(i)`` (BGR; ``frames()``
@@ -186,6 +190,8 @@ def log_recording(path: str | Path | None, capture: Any, pre: Preprocessed, trac
     pixels wide (``thumbnails`` made during detection are used as they are,
     so frames are not decoded twice); the growing 3D model at most
     ``model_updates`` times.
+    ``frame_status`` (one string per frame, e.g. :func:`pipeline.unregistered_why`) is logged on
+    the frame timeline, so scrubbing shows why a frame has no pose.
     ``spawn`` also streams to a live viewer (skipped with a warning when none
     can start). The recording is finalised (``disconnect``) even on errors.
     """
@@ -206,7 +212,7 @@ def log_recording(path: str | Path | None, capture: Any, pre: Preprocessed, trac
     lo, hi = _scene_box(solution)
     if line_colors is None and tracks is not None and tracks.n:
         line_colors = track_colors(segs, tracks)
-    blueprint = _blueprint(solution, batches, lo, hi)
+    blueprint = _blueprint(solution, batches, lo, hi, frame_status=bool(frame_status))
 
     rec = rr.RecordingStream("panosfm", recording_id=str(uuid.uuid4()))
     sinks = []
@@ -229,7 +235,7 @@ def log_recording(path: str | Path | None, capture: Any, pre: Preprocessed, trac
     rec.set_sinks(*sinks, default_blueprint=blueprint)
     try:
         _log_frames(rec, capture, pre, tracks, relations, solution, F, sc, image_width, img_h, lo, hi,
-                    model_updates, thumbnails)
+                    model_updates, thumbnails, frame_status)
         if batches:
             rec.reset_time()
             rec.log("batch", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
@@ -253,8 +259,9 @@ def log_recording(path: str | Path | None, capture: Any, pre: Preprocessed, trac
 
 def _log_frames(rec: Any, capture: Any, pre: Preprocessed, tracks: Tracks | None, relations: Relations | None,
                 solution: Solution | None, F: int, sc: float, image_width: int, img_h: int,
-                lo: np.ndarray, hi: np.ndarray, model_updates: int, thumbnails: Thumbnails | None = None) -> None:
-    """Logs the ``frame`` timeline: image, segments, relations, camera, lines placed so far."""
+                lo: np.ndarray, hi: np.ndarray, model_updates: int, thumbnails: Thumbnails | None = None,
+                frame_status: list[str] | None = None) -> None:
+    """Logs the ``frame`` timeline: image, segments, relations, camera, lines placed so far, status."""
     import rerun as rr
 
     segs = pre.segments
@@ -297,6 +304,10 @@ def _log_frames(rec: Any, capture: Any, pre: Preprocessed, tracks: Tracks | None
         rec.set_time("frame", sequence=i)
         jpeg = img if isinstance(img, bytes) else _encode(img, image_width)
         rec.log("world/camera/image", rr.EncodedImage(contents=jpeg, media_type="image/jpeg"))
+        if frame_status is not None and i < len(frame_status):
+            ok = frame_status[i] == "registered"
+            text = f"frame {i}: " + ("registered" if ok else f"not registered: {frame_status[i]}")
+            rec.log("status", rr.TextLog(text, level=rr.TextLogLevel.INFO if ok else rr.TextLogLevel.WARN))
         if solution is not None and known[i]:
             rec.log("world/camera", rr.Transform3D(translation=centers[i], mat3x3=solution.R_wc[i]))
         else:

@@ -115,9 +115,15 @@ def test_recording_entities_rows_and_final_views(tmp_path):
     F = 8
     capture, pre, tracks, rel, sol = spin(F)
     colors = np.tile(np.array([10, 20, 250], np.uint8), (tracks.n, 1))
+    status = ["registered"] * F
+    status[F // 2] = "no tracked Manhattan line"
     path = log_recording(tmp_path / "rec.rrd", capture, pre, tracks, rel, sol, batches=[sol, sol, sol],
-                         image_width=160, line_colors=colors)
+                         image_width=160, line_colors=colors, frame_status=status)
     rows, data = read_back(path)
+    # why a frame has no pose, on the frame timeline
+    texts = [t[0] if isinstance(t, list) else t for t in column(data["/status"], "TextLog:text")]
+    assert len(texts) == F and texts[F // 2] == f"frame {F // 2}: not registered: no tracked Manhattan line"
+    assert texts[0] == "frame 0: registered"
     for ent in ("/world/camera", "/world/camera/image/segments", "/world/camera/image/relations",
                 "/world/camera/image/floor", "/world/cameras"):
         assert rows[ent] == F, ent
@@ -154,7 +160,7 @@ def test_recording_entities_rows_and_final_views(tmp_path):
             origins += [o[0] if isinstance(o, list) else o
                         for o in rb.column("ViewBlueprint:space_origin").to_pylist()]
     assert sorted(o.lstrip("/") for o in origins) == sorted(
-        ["world", "world/camera/image", "batch", "final/quarter", "final/height", "final/topdown"])
+        ["world", "world/camera/image", "status", "batch", "final/quarter", "final/height", "final/topdown"])
 
 
 def test_segment_colours_and_relation_links_match_the_frame(tmp_path):
