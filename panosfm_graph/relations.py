@@ -389,6 +389,8 @@ def detect_relations(
     if len(rows) == 0:
         return empty_relations()
     uniq, support = np.unique(rows, axis=0, return_counts=True)
+    weak = (uniq[:, 0] == JUNCTION) & (support < config.junction_min_support)
+    uniq, support = uniq[~weak], support[~weak]
     rel = Relations(
         kind=uniq[:, 0].astype(np.int8),
         track_a=uniq[:, 1].astype(np.int32),

@@ -1,6 +1,8 @@
 """Relation detection (paper §3.2): known small scenes, and wrong normals rejected."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -86,6 +88,16 @@ def test_junction_threshold():
     assert _rows(rel, JUNCTION) == {(0, 1, 1)}
     rel = detect_relations(pre, tracks, nm, CAM, RelationsConfig(junction_dist_frac=0.12, **PAPER_JUNCTION))
     assert _rows(rel, JUNCTION) == {(0, 1, 1), (0, 2, 2)}
+
+
+def test_junction_min_support_drops_single_frame_junctions():
+    """Option junction_min_support: a junction seen in fewer frames is dropped (the others stay)."""
+    segs = [(20, 20, 80, 20), (84, 24, 84, 70)]  # ends 5.7 px apart
+    cfg = RelationsConfig(junction_dist_frac=0.08, **PAPER_JUNCTION)
+    for frames, need, found in ((1, 1, True), (1, 2, False), (2, 2, True)):
+        pre, tracks, nm = _frame(segs, [0, 2], n_frames=frames)
+        rel = detect_relations(pre, tracks, nm, CAM, dataclasses.replace(cfg, junction_min_support=need))
+        assert (_rows(rel, JUNCTION) == {(0, 1, 1)}) == found, (frames, need)
 
 
 def test_junction_needs_an_l_corner_with_consistent_normals():
