@@ -102,8 +102,12 @@ def gt_edge_distances(segments, K, R_gt, c_gt, lines, tol_px: float, angle_deg: 
 
 def gt_edge_of_segments(segments, K, R_gt, c_gt, lines, tol_px: float, angle_deg: float = 2.0) -> np.ndarray:
     """Returns (S,) index of the GT 3D edge each detected segment lies on, the nearest that fits (-1: none)."""
-    s, e, d = gt_edge_distances(segments, K, R_gt, c_gt, lines, tol_px, angle_deg)
-    out = np.full(segments.n, -1, dtype=np.int64)
+    return nearest_edge(segments.n, *gt_edge_distances(segments, K, R_gt, c_gt, lines, tol_px, angle_deg))
+
+
+def nearest_edge(n: int, s: np.ndarray, e: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Returns (n,) the nearest GT edge of each segment from :func:`gt_edge_distances`' pairs (-1: none)."""
+    out = np.full(n, -1, dtype=np.int64)
     order = np.lexsort((d, s))
     first = np.r_[True, s[order][1:] != s[order][:-1]] if len(s) else np.zeros(0, bool)
     out[s[order][first]] = e[order][first]
@@ -162,7 +166,8 @@ def evaluate(capture, pre, tracks, gt_px: float) -> dict:
     mf_err = float(np.max(np.degrees(np.arccos(np.clip(np.abs(np.sum(M * D_gt[match], axis=1)), 0, 1)))))
     vert_err = float(np.degrees(np.arccos(min(1.0, abs(pre.manhattan.directions[2, 2])))))
 
-    seg_edge = gt_edge_of_segments(pre.segments, K, gt.R_wc, gt.centers, gt.lines, gt_px)
+    fit_s, fit_e, fit_d = gt_edge_distances(pre.segments, K, gt.R_wc, gt.centers, gt.lines, gt_px)
+    seg_edge = nearest_edge(pre.segments.n, fit_s, fit_e, fit_d)
     has_gt = seg_edge >= 0
     gt_lab = np.where(has_gt, gt.line_labels[np.maximum(seg_edge, 0)], -1)
     pred = np.where(pre.labels >= 0, match[np.maximum(pre.labels, 0)], -1)
@@ -170,7 +175,6 @@ def evaluate(capture, pre, tracks, gt_px: float) -> dict:
     acc = float(np.mean(pred[labelled] == gt_lab[labelled])) if labelled.any() else float("nan")
 
     line_id = gt_line_groups(gt.lines, gt.line_labels, D_gt)
-    fit_s, fit_e, _ = gt_edge_distances(pre.segments, K, gt.R_wc, gt.centers, gt.lines, gt_px)
     purity, known = track_purity(np.asarray(tracks.track_of), fit_s, line_id[fit_e])
     lengths = np.diff(tracks.members()[1])
     purities = purity[known > 0]

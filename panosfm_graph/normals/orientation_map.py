@@ -123,7 +123,8 @@ class OrientationMapNormals(NormalSource):
 
     def prepare(self, capture: Capture, pre: Preprocessed) -> None:
         self._rays = None
-        self._orient: dict = {}
+        self._orient: dict[int, np.ndarray] = {}  # frame -> (h, w) int8 orientation map
+        self._onehot: dict[int, np.ndarray] = {}  # frame -> (h, w, 3) uint8 one-hot of it (fusion)
 
     def _orientation(self, capture, pre, f, h, w, scale) -> np.ndarray:
         """Returns frame ``f``'s (h, w) int8 orientation map (Manhattan axis of the normal, -1 unknown), cached."""
@@ -166,11 +167,10 @@ class OrientationMapNormals(NormalSource):
 
     def _one_hot(self, capture, pre, g, h, w, scale) -> np.ndarray:
         """Returns frame ``g``'s orientation map as an (h, w, 3) uint8 one-hot image (all 0: unknown), cached."""
-        key = ("one-hot", g)
-        if key not in self._orient:
+        if g not in self._onehot:
             o = self._orientation(capture, pre, g, h, w, scale)
-            self._orient[key] = (o[..., None] == np.arange(3)).astype(np.uint8)
-        return self._orient[key]
+            self._onehot[g] = (o[..., None] == np.arange(3)).astype(np.uint8)
+        return self._onehot[g]
 
     def camera_normals(self, capture, pre, f, h, w, scale):
         """Returns frame ``f``'s camera-frame Manhattan normals (towards the camera) and where the orientation map is known."""
