@@ -80,6 +80,9 @@ class TrackingConfig:
     # refine each frame pair's rotation homography by the image shift that best aligns its first matches,
     # then match again (the paper refines its homography by image features); 0: off
     shift_min_matches: int = 4
+    # segments whose polarities (grey levels, Segments.contrast) both exceed this and disagree never
+    # match: a trim's two sides, 2-4 px apart, are as close as neighbouring frames' parallax; 0: off
+    polarity_min: float = 8.0
 
 
 @dataclass(frozen=True)

@@ -120,12 +120,16 @@ class Segments:
     ``endpoints[s] = (x1, y1, x2, y2)`` in undistorted pixels at working
     resolution. Segments of frame ``f`` are ``frame_offsets[f]:frame_offsets[f+1]``.
     ``colors`` is the mean BGR colour along each segment (for the quarter view).
+    ``contrast`` (optional) is each segment's polarity: the mean grey level on the left of the
+    direction ``(x1, y1) -> (x2, y2)`` (image axes: x right, y down) minus that on its right; the
+    tracker does not match an edge with the opposite-polarity edge beside it (a trim's two sides).
     """
 
     endpoints: np.ndarray  # (S, 4) float32
     frame: np.ndarray  # (S,) int32
     frame_offsets: np.ndarray  # (F + 1,) int64
     colors: np.ndarray  # (S, 3) uint8
+    contrast: np.ndarray | None = None  # (S,) float32 grey levels, or None (unknown)
 
     @property
     def n(self) -> int:

@@ -156,13 +156,22 @@ def test_merge_joins_colinear_pieces_only():
 def test_detect_frame_finds_rectangle_edges():
     img = np.full((180, 320, 3), 60, np.uint8)
     cv2.rectangle(img, (60, 40), (260, 140), (200, 190, 180), -1)
-    ends, colors = detect_frame(img, DetectConfig())
+    ends, colors, contrast = detect_frame(img, DetectConfig())
     truth = np.array([[60, 40, 260, 40], [60, 140, 260, 140], [60, 40, 60, 140], [260, 40, 260, 140]], float)
-    for t in truth:  # each edge is found as one segment within 1.5 px (either orientation)
-        d = np.minimum(np.abs(ends - t).max(1), np.abs(ends[:, [2, 3, 0, 1]] - t).max(1))
-        assert d.min() < 1.5, (t, ends)
+    # the bright rectangle's inside: each edge's polarity says on which side of it that lies
+    inside = np.array([[160, 90]] * 4, float)
+    for t, c in zip(truth, inside):  # each edge is found as one segment within 1.5 px (either orientation)
+        fwd, rev = np.abs(ends - t).max(1), np.abs(ends[:, [2, 3, 0, 1]] - t).max(1)
+        d = np.minimum(fwd, rev)
+        k = int(np.argmin(d))
+        assert d[k] < 1.5, (t, ends)
+        # polarity: the grey level left of the segment's own direction minus right of it
+        e = ends[k].astype(float)
+        left = np.array([e[3] - e[1], -(e[2] - e[0])])  # left normal of (dx, dy) in image axes
+        inside_left = np.dot(c - e[:2], left) > 0
+        assert abs(contrast[k]) > 50 and (contrast[k] > 0) == inside_left, (e, contrast[k])
     assert len(ends) <= 8  # LSD may give both sides of a 1 px edge; merged pieces do not multiply
-    assert np.all(ends.min(0) >= -1) and colors.dtype == np.uint8
+    assert np.all(ends.min(0) >= -1) and colors.dtype == np.uint8 and contrast.shape == (len(ends),)
 
 
 def test_detect_segments_pool_equals_inline():
@@ -393,6 +402,60 @@ def test_colinear_groups_merge_only_colinear_pieces():
     np.testing.assert_allclose(merged[0], [0, 100, 300, 100], atol=1e-6)  # spans both pieces on the long line
     np.testing.assert_allclose(merged[2:], ends[2:], atol=1e-6)
     np.testing.assert_array_equal(colinear_groups(seg, labels, 0.0)[0], np.arange(6))
+
+
+def test_colinear_groups_by_vanishing_point_lines_tolerate_piece_angle_noise():
+    from panosfm_graph.lines.tracking import colinear_groups, manhattan_lines
+
+    # a camera looking along +y (world z up): world x lines are horizontal in the image (vanishing
+    # point at infinity), world z lines vertical. Pieces of one horizontal image line y = 300 whose
+    # own angles are off by 1.5 degrees (short pieces on a textured edge) but whose mid-points lie on it
+    K = np.array([[500.0, 0, 480], [0, 500.0, 270], [0, 0, 1]])
+    R_wc = np.array([[[1.0, 0, 0], [0, 0, 1], [0, -1, 0]]])  # camera x = world x, y = -z, z = y
+    dirs = np.eye(3)
+    tilt = np.tan(np.radians(1.5))
+
+    def piece(x0, x1, y, slope):
+        xm = 0.5 * (x0 + x1)
+        return [x0, y + slope * (x0 - xm), x1, y + slope * (x1 - xm)]
+
+    ends = np.array([piece(100, 300, 300, tilt),  # long piece, tilted
+                     piece(320, 400, 300, -tilt),  # colinear piece tilted the other way: 2 px off at its far end
+                     piece(100, 300, 303, 0.0),  # parallel line 3 px away, overlapping: another line
+                     [600, 100, 600, 400]], np.float32)  # a vertical line
+    seg = Segments(endpoints=ends, frame=np.zeros(4, np.int32), frame_offsets=np.array([0, 4]),
+                   colors=np.zeros((4, 3), np.uint8))
+    labels = np.array([0, 0, 0, 2], np.int8)
+    L = manhattan_lines(seg, labels, K, R_wc, dirs)
+    np.testing.assert_allclose(L[:3, :2] / L[:3, 1:2], [[0, 1]] * 3, atol=1e-9)  # horizontal lines
+    np.testing.assert_allclose(np.abs(L[:3, 2]), [300, 300, 303], atol=1e-6)  # through the mid-points
+    np.testing.assert_allclose(np.abs(L[3] / L[3, 0]), [1, 0, 600], atol=1e-9)  # vertical through x = 600
+    rep_ends, _ = colinear_groups(seg, labels, 1.0)  # endpoint test: the tilts keep the pieces apart
+    rep_vp, merged = colinear_groups(seg, labels, 1.0, L)
+    assert rep_ends[1] == 1
+    np.testing.assert_array_equal(rep_vp, [0, 0, 2, 3])
+    assert merged[0][0] == pytest.approx(100, abs=0.5) and merged[0][2] == pytest.approx(400, abs=0.5)
+
+
+def test_polarity_keeps_a_trims_two_sides_apart():
+    from panosfm_graph.lines.tracking import match_pair
+
+    # frame a: a trim's two vertical sides 3 px apart, dark-to-bright then bright-to-dark; in frame b
+    # both moved 3 px right (parallax), so a's right side falls on b's left side's line exactly
+    a = np.array([[100, 50, 100, 250], [103, 50, 103, 250]], np.float64)
+    b = a + [3, 0, 3, 0]
+    b_rev = b[:, [2, 3, 0, 1]]  # b's segments stored in the other direction: polarity flips sign with it
+    lab = np.zeros(2, np.int8)
+    ca = np.array([40.0, -40.0])
+    H = np.eye(3)
+    ia, ib, _ = match_pair(a, lab, b, lab, H, 27.0, 1.0)
+    assert list(zip(ia, ib)) == [(1, 0)]  # without polarity: a's right side takes b's left side
+    for eb, cb in ((b, ca), (b_rev, -ca)):
+        ia, ib, _ = match_pair(a, lab, eb, lab, H, 27.0, 1.0, contrast_a=ca, contrast_b=cb, polarity_min=8.0)
+        assert list(zip(ia, ib)) == [(0, 0), (1, 1)]
+    # weak contrast (below polarity_min) says nothing
+    ia, ib, _ = match_pair(a, lab, b, lab, H, 27.0, 1.0, contrast_a=ca / 10, contrast_b=ca / 10, polarity_min=8.0)
+    assert list(zip(ia, ib)) == [(1, 0)]
 
 
 def test_angle_tolerance_grows_for_short_segments():

@@ -75,5 +75,6 @@ def track_lines(capture: Capture, pre: Preprocessed, config: Config) -> Tracks:
     """Returns the line tracks of a preprocessed capture (supplement §3)."""
     cam = capture.camera
     return _track_lines(
-        pre.segments, pre.labels, cam.K, pre.R_wc, config.tracking, image_size=(cam.width, cam.height)
+        pre.segments, pre.labels, cam.K, pre.R_wc, config.tracking, image_size=(cam.width, cam.height),
+        directions=pre.manhattan.directions,
     )

@@ -63,8 +63,31 @@ def overlap_along(ea: np.ndarray, eb: np.ndarray, db: np.ndarray) -> np.ndarray:
             - np.maximum(np.minimum(pa0, pa1), np.minimum(pb0, pb1)[None]))
 
 
+def manhattan_lines(segments: Segments, labels: np.ndarray, K: np.ndarray, R_wc: np.ndarray,
+                    directions: np.ndarray) -> np.ndarray:
+    """Returns (S, 3) each Manhattan segment's image line through its mid-point and its vanishing point.
+
+    The line is normalised (``l . (x, y, 1)`` is a signed distance in pixels); NaN for unlabelled
+    segments. Its direction comes from the Manhattan direction (``directions[label]``, world) and
+    the frame's rotation, not from the segment's own endpoints, whose angle is only known to ~1
+    degree for a 60 px segment: two pieces of one line 200 px long then disagree by 3 px.
+    """
+    S = segments.n
+    out = np.full((S, 3), np.nan)
+    lab = np.asarray(labels)
+    m = np.flatnonzero(lab >= 0)
+    if len(m) == 0:
+        return out
+    f = segments.frame[m]
+    vp = np.einsum("ij,fkj,fk->fi", K, R_wc[f], directions[lab[m]])  # K R^T d (R = world_from_camera)
+    mid = np.concatenate([segments.midpoints[m].astype(np.float64), np.ones((len(m), 1))], axis=1)
+    line = np.cross(mid, vp)
+    out[m] = line / np.maximum(np.hypot(line[:, 0], line[:, 1]), 1e-12)[:, None]
+    return out
+
+
 def colinear_groups(
-    segments: Segments, labels: np.ndarray, dist_px: float
+    segments: Segments, labels: np.ndarray, dist_px: float, lines: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Returns (representative segment id (S,), merged endpoints (S, 4)) of colinear pieces per frame (supplement §3).
 
@@ -78,7 +101,11 @@ def colinear_groups(
     represented by its longest piece; ``merged[rep]`` spans the extreme
     projections of all the group's endpoints on the representative's line
     (used for matching only). Non-Manhattan segments and pieces that are their
-    own group map to themselves. ``dist_px`` <= 0 disables grouping.
+    own group map to themselves. ``dist_px`` <= 0 disables grouping. With
+    ``lines`` (:func:`manhattan_lines`) the test is instead that each piece's
+    mid-point lies within ``dist_px`` of the other's Manhattan line (the
+    direction is the vanishing point's, so short pieces' angle noise does not
+    separate them).
     """
     S = segments.n
     rep = np.arange(S)
@@ -96,8 +123,13 @@ def colinear_groups(
         e = ends[m]
         h0 = np.concatenate([e[:, :2], np.ones((len(m), 1))], axis=1)
         h1 = np.concatenate([e[:, 2:], np.ones((len(m), 1))], axis=1)
-        far = np.maximum(np.abs(L[m] @ h0.T), np.abs(L[m] @ h1.T))  # [i, j]: j's farther endpoint to i's line
         longer = length[m][:, None] >= length[m][None, :]
+        if lines is None:
+            far = np.maximum(np.abs(L[m] @ h0.T), np.abs(L[m] @ h1.T))  # [i, j]: j's farther endpoint to i's line
+        else:  # each mid-point to the other's vanishing-point line
+            hm = 0.5 * (h0 + h1)
+            dm = np.abs(lines[m] @ hm.T)  # [i, j]: j's mid-point to i's line
+            far = np.maximum(dm, dm.T)
         ok = longer & (far < dist_px) & (labels[m][:, None] == labels[m][None, :])
         # pieces lie side by side along the line; two that overlap are two lines (the edges of a trim)
         ok &= overlap_along(e, e, d[m]).T <= dist_px  # [i, j] along i's direction
@@ -132,6 +164,7 @@ def colinear_groups(
 def match_pair(
     ea: np.ndarray, la: np.ndarray, eb: np.ndarray, lb: np.ndarray, H: np.ndarray, dist_px: float, angle_deg: float,
     angle_px: float = 0.0, gap_px: float | None = None,
+    contrast_a: np.ndarray | None = None, contrast_b: np.ndarray | None = None, polarity_min: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Returns (index in a, index in b, distance px) of mutual-best segment matches between two frames.
 
@@ -149,6 +182,10 @@ def match_pair(
     the line, up to a gap of ``gap_px``: two 3D lines that happen to be
     colinear in the image (a table edge continuing a skirting line) are
     usually side by side along it, not on top of each other.
+    With ``contrast_a``/``contrast_b`` (:func:`~panosfm_graph.lines.detect.segment_contrast`) and
+    ``polarity_min`` > 0 (a deviation), two segments whose polarities both exceed ``polarity_min``
+    grey levels and disagree (after aligning their directions) never match: a trim's two sides,
+    2-4 px apart, are as close as the parallax between neighbouring frames.
     """
     wa = _warp(H, ea.astype(np.float64))
     da, La = _lines(wa)
@@ -169,6 +206,10 @@ def match_pair(
     ok = (la[:, None] == lb[None, :]) & (cos > np.cos(tol)) & (gate < dist_px)
     if gap_px is not None:  # the two must overlap along the line (up to gap_px): image-colinear lines at other depths do not
         ok &= -overlap_along(wa, eb64, db) < gap_px
+    if polarity_min > 0 and contrast_a is not None and contrast_b is not None:
+        ca = np.sign(da @ db.T) * contrast_a[:, None]  # a's polarity in b's direction
+        cb = contrast_b[None, :]
+        ok &= ~((ca * cb < 0) & (np.abs(ca) > polarity_min) & (np.abs(cb) > polarity_min))
     cost = np.where(ok, score, np.inf)
     if cost.size == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
@@ -257,6 +298,7 @@ def track_lines(
     config: Config | TrackingConfig,
     images=None,
     image_size: tuple[int, int] | None = None,
+    directions: np.ndarray | None = None,
 ) -> Tracks:
     """Returns line tracks: chains of matched Manhattan segments across frames (supplement §3).
 
@@ -284,7 +326,9 @@ def track_lines(
     ``colinear_px`` > 0, colinear pieces of one image line in one frame
     (:func:`colinear_groups`) are matched as ONE observation spanning all of
     them, and only the longest piece joins the track (the others stay -1), so
-    a track still holds at most one segment per frame. ``image_size``
+    a track still holds at most one segment per frame; with the Manhattan
+    ``directions`` (world, (3, 3)) given, pieces are colinear by their
+    vanishing-point lines (:func:`manhattan_lines`). ``image_size``
     (w, h) sets the distance threshold's min(w, h); by default it is taken
     from the principal point (image centre).
     """
@@ -302,7 +346,9 @@ def track_lines(
     F = len(R_wc)
     pairs = frame_pairs(R_wc, cfg.axis_angle_deg)
     bridges = _bridge_pairs(R_wc, cfg.bridge_angle_deg, pairs)
-    rep, ends = colinear_groups(segments, labels, cfg.colinear_px)
+    mlines = None if directions is None else manhattan_lines(segments, labels, K, R_wc, directions)
+    rep, ends = colinear_groups(segments, labels, cfg.colinear_px, mlines)
+    contrast = segments.contrast if cfg.polarity_min > 0 else None
     head = manhattan & (rep == np.arange(S))  # one observation per group of colinear pieces
     idx = [np.flatnonzero(head[segments.of_frame(f)]) + segments.frame_offsets[f] for f in range(F)]
     labs = labels
@@ -315,13 +361,15 @@ def track_lines(
             return
         H = rotation_homography(K, R_wc[i], R_wc[j])
         gap = None if cfg.match_gap_frac is None else cfg.match_gap_frac * min_side
+        pol = {} if contrast is None else dict(contrast_a=contrast[ia], contrast_b=contrast[ib],
+                                               polarity_min=cfg.polarity_min)
         a, b, d = match_pair(ends[ia], labs[ia], ends[ib], labs[ib], H, dist_px, cfg.match_angle_deg,
-                             cfg.match_angle_px, gap)
+                             cfg.match_angle_px, gap, **pol)
         if cfg.shift_min_matches > 0 and len(a) >= cfg.shift_min_matches:
             t = residual_shift(_warp(H, ends[ia[a]]), ends[ib[b]])
             H = np.array([[1.0, 0.0, t[0]], [0.0, 1.0, t[1]], [0.0, 0.0, 1.0]]) @ H
             a, b, d = match_pair(ends[ia], labs[ia], ends[ib], labs[ib], H, dist_px, cfg.match_angle_deg,
-                                 cfg.match_angle_px, gap)
+                                 cfg.match_angle_px, gap, **pol)
         if bridge:  # mutual best among ALL segments, then kept only between a track end and a track start
             g = j - i
             end = (fwd_gap[ia[a]] >= g) & (bwd_gap[ib[b]] >= g)
