@@ -8,7 +8,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-ROBUST_KERNELS = ("none", "huber", "cauchy")
+ROBUST_KERNELS = ("none", "huber", "cauchy", "geman_mcclure")
 
 
 def sigma_from_weight(weight: float, unit_sigma: float = 1.0) -> float:
@@ -19,7 +19,9 @@ def sigma_from_weight(weight: float, unit_sigma: float = 1.0) -> float:
 
 
 def robust_kernel(name: str, k: float):
-    """Returns the gtsam m-estimator for ``name`` ("huber" | "cauchy") with threshold ``k`` (whitened units), or None for "none"."""
+    """Returns the gtsam m-estimator for ``name`` ("huber" | "cauchy" | "geman_mcclure") with threshold ``k``
+    (whitened units), or None for "none". Geman-McClure redescends: a residual far outside the noise costs
+    at most ``k^2 / 2``, where Cauchy's cost keeps growing with its logarithm."""
     name = name.lower()
     if name == "none":
         return None
@@ -27,6 +29,8 @@ def robust_kernel(name: str, k: float):
         return gtsam.noiseModel.mEstimator.Huber.Create(float(k))
     if name == "cauchy":
         return gtsam.noiseModel.mEstimator.Cauchy.Create(float(k))
+    if name == "geman_mcclure":
+        return gtsam.noiseModel.mEstimator.GemanMcClure.Create(float(k))
     raise ValueError(f"unknown robust kernel {name!r}; expected one of {ROBUST_KERNELS}")
 
 
@@ -49,6 +53,8 @@ def robust_weight(whitened: np.ndarray, robust: str = "none", k: float = 1.345) 
         return np.where(r <= k, 1.0, k / np.maximum(r, 1e-300))
     if name == "cauchy":
         return 1.0 / (1.0 + (r / k) ** 2)
+    if name == "geman_mcclure":
+        return k**4 / (k**2 + r**2) ** 2
     raise ValueError(f"unknown robust kernel {robust!r}; expected one of {ROBUST_KERNELS}")
 
 

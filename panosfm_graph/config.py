@@ -83,6 +83,9 @@ class TrackingConfig:
     # segments whose polarities (grey levels, Segments.contrast) both exceed this and disagree never
     # match: a trim's two sides, 2-4 px apart, are as close as neighbouring frames' parallax; 0: off
     polarity_min: float = 8.0
+    # colinear pieces of one frame are grouped by their vanishing-point lines (colinear_groups), not by their
+    # own endpoints (whose angle is ~1 degree off on a 60 px piece); False: the endpoint test
+    vp_colinear: bool = True
 
 
 @dataclass(frozen=True)
@@ -134,6 +137,16 @@ class LinearConfig:
 
     colinearity_weight: float = 1.0
     coplanarity_weight: float = 1.0
+    # A deviation: solve from the tracks (colinearity, the body-motion prior) and the floor alone, and use
+    # the coplanarities only when that registers fewer than ``tracks_first_share`` of the frames they do
+    # (a short capture whose frames only relations link); the bundle adjustment adds them in any case.
+    # A false coplanarity (the orientation map's are 58-75 % precise) is satisfied here by shrinking the
+    # camera motion that would show the depth difference -- it leaves no residual to detect it by -- and
+    # parts of the sweep collapsed to a point (living capture 30: 35 % centre error; from the tracks
+    # alone 20 %). Measured, five captures per scene, with the BA's Geman-McClure kernel: medians
+    # living/bedroom/office 2.5/0.7/13.3 -> 4.3/0.8/1.0 % (tools/bench.py --seeds 5; README). False: the paper
+    tracks_first: bool = True
+    tracks_first_share: float = 0.8
     floor_weight: float = 1.0
     min_depth_m: float = 0.3  # lower bound on every depth (lambda > 0)
     camera_height_m: float | None = None  # metric scale: floor this far below the mean camera height
@@ -177,8 +190,17 @@ class GraphConfig:
     relation_weight: float = 1e4  # colinearity / coplanarity weight relative to reprojection (paper)
     reprojection_sigma_px: float = 1.0
     imu_sigma_deg: float = 0.2  # relative-rotation prior between neighbouring frames
-    robust: str = "cauchy"  # "none" | "huber" | "cauchy" (measured: huber lets false coplanarities drag lines)
+    # "none" | "huber" | "cauchy" | "geman_mcclure" (relations only). Measured: huber lets false coplanarities
+    # drag lines; Cauchy's cost keeps growing (log) with a false relation's residual, so 140 false relations
+    # outweighed the reprojection of a collapsing sweep (office capture 2: linear 2.9 %, BA 33 %);
+    # Geman-McClure caps each at k^2/2 (five captures per scene: 3.4/1.1/14.1 -> 2.5/0.7/13.3 %)
+    robust: str = "geman_mcclure"
     robust_k: float = 1.345
+    # scale gauge: the distance of the best-observed line from the first camera is held (True) instead of
+    # the floor height (False: a floor made of furniture tops, robustly down-weighted, held nothing and
+    # the sweep shrank; five captures per scene 2.4/1.1/33.6 -> 3.4/1.1/14.1 %); the result is rescaled
+    # to the linear solve's camera height above the floor either way
+    scale_line_gauge: bool = True
     support_weighting: bool = True  # relation sigma / sqrt(frames the relation was detected in)
     phases: tuple[int, ...] = (1, 2, 3)  # 1: lines+translations, 2: +rotations, 3: +intrinsics
     max_iterations: int = 30

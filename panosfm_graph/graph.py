@@ -203,7 +203,7 @@ def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase:
     tight = lambda d: gtsam.noiseModel.Isotropic.Sigma(d, GAUGE_SIGMA)  # noqa: E731
     graph.add(gtsam.PriorFactorPoint3(center_key(gauge["first"]), gauge["first_center"], tight(3)))
     counts["prior"] += 1
-    if gauge["use_floor"]:
+    if gauge["use_floor"] and not config.scale_line_gauge:
         graph.add(gtsam.PriorFactorVector(FLOOR_KEY, np.array([gauge["floor_h"]]), tight(1)))
     else:
         graph.add(factors.plane_offset_factor(line_key(gauge["scale_line"]), center_key(gauge["first"]),

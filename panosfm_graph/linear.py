@@ -367,6 +367,17 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     line to its segments' end-point rays. ``R_wc`` is ``pre.R_wc`` passed through.
     With ``floor_verify_ratio`` > 0 the floor relations are verified first (:func:`verify_floor`).
     """
+    if config.tracks_first and config.coplanarity_weight > 0:
+        paper = dataclasses.replace(config, tracks_first=False)
+        with_rel = solve_linear(pre, tracks, relations, camera, paper)
+        alone = solve_linear(pre, tracks, relations, camera, dataclasses.replace(paper, coplanarity_weight=0.0))
+        use_alone = alone.registered.sum() >= config.tracks_first_share * with_rel.registered.sum()
+        sol = alone if use_alone else with_rel
+        sol.residuals["coplanarities_in_linear"] = not use_alone
+        log.info("linear: %s (tracks alone register %d frames, with the coplanarities %d)",
+                 "from the tracks alone" if use_alone else "with the coplanarities",
+                 int(alone.registered.sum()), int(with_rel.registered.sum()))
+        return sol
     if config.floor_verify_ratio > 0 and np.any(relations.kind == FLOOR):
         relations, dropped = verify_floor(pre, tracks, relations, camera, config)
         sol = solve_linear(pre, tracks, relations, camera, dataclasses.replace(config, floor_verify_ratio=0.0))

@@ -183,6 +183,16 @@ def test_noise_models_and_weights():
     nc = factors.noise_model(1, 1.0, "cauchy", 2.0)
     assert nc.loss(nc.squaredMahalanobisDistance(np.array([2.0]))) == pytest.approx(2.0 * np.log(2.0), rel=1e-6)
     np.testing.assert_allclose(factors.robust_weight([0.5, 10.0], "huber", 1.0), [1.0, 0.1])
+    # the vectorised weights are GTSAM's kernels' weights, for every kernel
+    r = np.array([0.0, 0.5, 1.345, 3.0, 30.0])
+    for name in ("huber", "cauchy", "geman_mcclure"):
+        kernel = factors.robust_kernel(name, 1.345)
+        np.testing.assert_allclose(factors.robust_weight(r, name, 1.345), [kernel.weight(x) for x in r], rtol=1e-9)
+    # Geman-McClure redescends: a residual 100 sigmas off costs no more than k^2 / 2 (Cauchy: log-growing)
+    ng = factors.noise_model(1, 1.0, "geman_mcclure", 1.345)
+    nc = factors.noise_model(1, 1.0, "cauchy", 1.345)
+    big = lambda nm: nm.loss(nm.squaredMahalanobisDistance(np.array([100.0])))  # noqa: E731
+    assert big(ng) <= 1.345**2 / 2 + 1e-9 and big(nc) > 5 * big(ng)
     with pytest.raises(ValueError):
         factors.noise_model(1, 1.0, "tukeyx")
 

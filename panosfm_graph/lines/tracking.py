@@ -327,8 +327,14 @@ def track_lines(
     (:func:`colinear_groups`) are matched as ONE observation spanning all of
     them, and only the longest piece joins the track (the others stay -1), so
     a track still holds at most one segment per frame; with the Manhattan
-    ``directions`` (world, (3, 3)) given, pieces are colinear by their
-    vanishing-point lines (:func:`manhattan_lines`). ``image_size``
+    ``directions`` (world, (3, 3)) given and ``vp_colinear``, pieces are
+    colinear by their vanishing-point lines (:func:`manhattan_lines`;
+    measured, 300 frames 960x540: tracks living/bedroom/office 317/287/387 ->
+    162/98/171, mean length 10.6/6.5/8.3 -> 18.1/14.4/15.7 frames, purity
+    99.8/99.1/98.9 -> 100.0/98.4/97.4 %: the impure ones mix a trim's edges
+    3 cm apart). With ``polarity_min`` > 0 and ``segments.contrast`` known,
+    opposite-polarity segments never match (:func:`match_pair`; purity
+    98.9/98.8/98.4 -> 99.8/99.1/98.9 %). ``image_size``
     (w, h) sets the distance threshold's min(w, h); by default it is taken
     from the principal point (image centre).
     """
@@ -346,7 +352,7 @@ def track_lines(
     F = len(R_wc)
     pairs = frame_pairs(R_wc, cfg.axis_angle_deg)
     bridges = _bridge_pairs(R_wc, cfg.bridge_angle_deg, pairs)
-    mlines = None if directions is None else manhattan_lines(segments, labels, K, R_wc, directions)
+    mlines = None if directions is None or not cfg.vp_colinear else manhattan_lines(segments, labels, K, R_wc, directions)
     rep, ends = colinear_groups(segments, labels, cfg.colinear_px, mlines)
     contrast = segments.contrast if cfg.polarity_min > 0 else None
     head = manhattan & (rep == np.arange(S))  # one observation per group of colinear pieces
