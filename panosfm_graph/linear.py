@@ -29,12 +29,12 @@ Formulation choices (documented deviations are marked *):
   frames (``Q = Rz(-yaw)``, exact for a uniform turn on a circle). It regularises the weak
   depth/translation modes of short tracks (measured: fragmented 4-frame tracks, office, 120
   frames: 48 % -> 0.7 % of the trajectory diameter) but never registers a frame (below).
-* Tracks first* (``tracks_first``, on): the solve uses the tracks (colinearity, the body-motion prior)
-  and the floor alone, and the coplanarity rows only when that registers fewer than
-  ``tracks_first_share`` of the frames they register. A false coplanarity is satisfied here by
-  shrinking the camera motion that would show the depth difference, so it leaves no residual to
-  find it by (measured: parts of the sweep collapsed onto a point); the bundle adjustment brings
-  the coplanarities in with a redescending kernel.
+* Tracks first* (``tracks_first``, off by default: measured worse on the bedroom): the solve uses
+  the tracks (colinearity, the body-motion prior) and the floor alone, and the coplanarity rows
+  only when that registers fewer than ``tracks_first_share`` of the frames they register. A false
+  coplanarity is satisfied here by shrinking the camera motion that would show the depth
+  difference, so it leaves no residual to find it by (measured: parts of the sweep collapsed onto
+  a point); the bundle adjustment brings the coplanarities in with a redescending kernel.
 * Floor outliers* (``floor_tolerance`` > 0, with ``robust_iterations``): a floor relation whose line
   ends up above the floor (a furniture top: upward normals too) is downweighted, one-sided.
 * Gauge: the first registered camera's centre is the origin. Scale, in this order:

@@ -13,7 +13,7 @@ from panosfm_graph.evaluate import umeyama
 
 
 def Paper(**kw) -> LinearConfig:
-    """The paper's linear solve: coplanarity rows always in (the pipeline solves from the tracks first)."""
+    """The paper's linear solve: coplanarity rows always in (explicitly: tracks_first is an option)."""
     return LinearConfig(**{"tracks_first": False, **kw})
 
 
@@ -340,12 +340,12 @@ def test_too_few_floor_lines_leave_the_scale_arbitrary(clean):
 
 
 def test_tracks_first_uses_the_coplanarities_only_when_the_tracks_register_too_little(clean):
-    """Our deviation (LinearConfig.tracks_first): the tracks alone when they register most frames; a false
+    """Our option (LinearConfig.tracks_first, off by default): the tracks alone when they register most frames; a false
     coplanarity cannot shrink the sweep then. Relations come in when only they link the frames."""
     p = make_problem("living", 60, (480, 270), seed=0, pixel_noise_px=0.5, false_relation_ratio=0.1)
     H = _height(p)
     errs = {}
-    for name, cfg in (("paper", Paper(camera_height_m=H)), ("tracks first", LinearConfig(camera_height_m=H))):
+    for name, cfg in (("paper", Paper(camera_height_m=H)), ("tracks first", LinearConfig(camera_height_m=H, tracks_first=True))):
         sol = solve_linear(p.preprocessed, p.tracks, p.relations, p.camera, cfg)
         reg = sol.registered
         s, R, t = umeyama(sol.centers[reg], p.gt_centers[reg])
@@ -357,6 +357,6 @@ def test_tracks_first_uses_the_coplanarities_only_when_the_tracks_register_too_l
     assert errs["paper"] > 0.15 and errs["tracks first"] < 0.6 * errs["paper"], errs
     # fragment every track into 2-frame pieces: the tracks alone no longer link the frames
     short, rel, _ = _fragment(p, 2)
-    sol = solve_linear(p.preprocessed, short, rel, p.camera, LinearConfig(camera_height_m=H))
-    alone = solve_linear(p.preprocessed, short, rel, p.camera, LinearConfig(camera_height_m=H, coplanarity_weight=0.0))
+    sol = solve_linear(p.preprocessed, short, rel, p.camera, LinearConfig(camera_height_m=H, tracks_first=True))
+    alone = solve_linear(p.preprocessed, short, rel, p.camera, Paper(camera_height_m=H, coplanarity_weight=0.0))
     assert alone.registered.sum() < 0.8 * sol.registered.sum() and sol.residuals["coplanarities_in_linear"] is True

@@ -75,6 +75,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--false-relations", type=float, default=0.0, help="ratio of injected wrong coplanarities")
     ap.add_argument("--no-height", action="store_true", help="solve without the camera height (arbitrary scale)")
     ap.add_argument("--motion-weight", type=float, default=LinearConfig.motion_weight, help="body-motion prior (0: paper)")
+    ap.add_argument("--tracks-first", action="store_true",
+                    help="solve from the tracks alone unless the coplanarities are needed to register (option)")
     ap.add_argument("--json", default=None, help="write the results here")
     args = ap.parse_args(argv)
 
@@ -86,7 +88,8 @@ def main(argv: list[str] | None = None) -> int:
         height = None if args.no_height else float(p.gt_centers[:, 2].mean() - floor_z)
         t0 = time.perf_counter()
         sol = solve_linear(p.preprocessed, p.tracks, p.relations, p.camera, LinearConfig(camera_height_m=height,
-                                                                                       motion_weight=args.motion_weight))
+                                                                                       motion_weight=args.motion_weight,
+                                                                                       tracks_first=args.tracks_first))
         dt = time.perf_counter() - t0
         r = evaluate(p, sol)
         r["seconds"] = dt
