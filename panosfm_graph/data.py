@@ -14,9 +14,7 @@ track, frame or relation. Conventions (see ``capture-format.md``):
 """
 from __future__ import annotations
 
-import dataclasses
-
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Callable, Iterator
 
@@ -263,7 +261,7 @@ class Relations:
 
     def subset(self, index: np.ndarray) -> "Relations":
         """Returns the relations selected by ``index`` (a boolean mask or integer indices)."""
-        return Relations(*(np.asarray(getattr(self, f.name))[index] for f in dataclasses.fields(Relations)))
+        return Relations(*(np.asarray(getattr(self, f.name))[index] for f in fields(Relations)))
 
 
 @dataclass(frozen=True)

@@ -271,8 +271,8 @@ def weak_axes(information: np.ndarray, min_eig: float, manhattan: np.ndarray = n
 
 
 def verify_floor(pre: Preprocessed, tracks: Tracks, relations: Relations, camera: Camera,
-                 config: LinearConfig) -> tuple[Relations, np.ndarray]:
-    """Returns (relations without the floor relations that are not on the floor, the dropped ones' indices).
+                 config: LinearConfig) -> tuple[Relations, int]:
+    """Returns (relations without the floor relations that are not on the floor, how many were dropped).
 
     A deviation from the paper: surface normals cannot tell the floor from the tops of tables,
     beds and sofa seats (all horizontal), and one furniture top taken for the floor makes the
@@ -297,7 +297,7 @@ def verify_floor(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     if not np.any(known):
         keep = ~is_floor
         log.info("linear: none of the %d floor relations can be verified, dropped", len(cand))
-        return relations.subset(keep), cand
+        return relations.subset(keep), int(len(cand))
     cam_h = float(np.mean(first.centers[reg] @ up))
     depth = cam_h - first.lines.taylor[t[known]] @ up  # how far below the cameras each candidate line lies
     # the reference: the deepest horizontal lines of the model (floor candidates or not: a floor-wall
@@ -322,7 +322,7 @@ def verify_floor(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     keep = np.ones(relations.n, bool)
     keep[drop] = False
     log.info("linear: %d of %d floor relations are above the floor (furniture tops), dropped", len(drop), len(cand))
-    return relations.subset(keep), np.sort(drop).astype(np.int64)
+    return relations.subset(keep), int(len(drop))
 
 
 def turned_degrees(R_wc: np.ndarray) -> np.ndarray:
@@ -385,9 +385,9 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
                  int(alone.registered.sum()), int(with_rel.registered.sum()))
         return sol
     if config.floor_verify_ratio > 0 and np.any(relations.kind == FLOOR):
-        relations, dropped = verify_floor(pre, tracks, relations, camera, config)
+        relations, n_dropped = verify_floor(pre, tracks, relations, camera, config)
         sol = solve_linear(pre, tracks, relations, camera, dataclasses.replace(config, floor_verify_ratio=0.0))
-        sol.residuals["floor_relations_rejected"] = int(len(dropped))
+        sol.residuals["floor_relations_rejected"] = n_dropped
         return sol
     t_start = time.perf_counter()
     seg = pre.segments

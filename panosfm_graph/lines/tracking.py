@@ -190,7 +190,8 @@ def match_pair(
     wa = _warp(H, ea.astype(np.float64))
     da, La = _lines(wa)
     db, Lb = _lines(eb.astype(np.float64))
-    cos = np.abs(da @ db.T)  # (A, B)
+    dot = da @ db.T  # (A, B) cosines of the directions, signed
+    cos = np.abs(dot)
     hom = lambda e, k: np.concatenate([e[:, 2 * k : 2 * k + 2], np.ones((len(e), 1))], axis=1)
     eb64 = eb.astype(np.float64)
     d_a0, d_a1 = np.abs(hom(wa, 0) @ Lb.T), np.abs(hom(wa, 1) @ Lb.T)  # a's endpoints to b's line
@@ -207,7 +208,7 @@ def match_pair(
     if gap_px is not None:  # the two must overlap along the line (up to gap_px): image-colinear lines at other depths do not
         ok &= -overlap_along(wa, eb64, db) < gap_px
     if polarity_min > 0 and contrast_a is not None and contrast_b is not None:
-        ca = np.sign(da @ db.T) * contrast_a[:, None]  # a's polarity in b's direction
+        ca = np.sign(dot) * contrast_a[:, None]  # a's polarity in b's direction
         cb = contrast_b[None, :]
         ok &= ~((ca * cb < 0) & (np.abs(ca) > polarity_min) & (np.abs(cb) > polarity_min))
     cost = np.where(ok, score, np.inf)
@@ -355,6 +356,7 @@ def track_lines(
     mlines = None if directions is None or not cfg.vp_colinear else manhattan_lines(segments, labels, K, R_wc, directions)
     rep, ends = colinear_groups(segments, labels, cfg.colinear_px, mlines)
     contrast = segments.contrast if cfg.polarity_min > 0 else None
+    gap = None if cfg.match_gap_frac is None else cfg.match_gap_frac * min_side
     head = manhattan & (rep == np.arange(S))  # one observation per group of colinear pieces
     idx = [np.flatnonzero(head[segments.of_frame(f)]) + segments.frame_offsets[f] for f in range(F)]
     labs = labels
@@ -366,7 +368,6 @@ def track_lines(
         if len(ia) == 0 or len(ib) == 0:
             return
         H = rotation_homography(K, R_wc[i], R_wc[j])
-        gap = None if cfg.match_gap_frac is None else cfg.match_gap_frac * min_side
         pol = {} if contrast is None else dict(contrast_a=contrast[ia], contrast_b=contrast[ib],
                                                polarity_min=cfg.polarity_min)
         a, b, d = match_pair(ends[ia], labs[ia], ends[ib], labs[ib], H, dist_px, cfg.match_angle_deg,
