@@ -163,10 +163,10 @@ class LinearConfig:
     motion_weight: float = 0.3  # body-motion prior on consecutive centres (rows in m, like colinearity; sigma_c / sigma_accel); 0 = paper
     motion_order: int = 2  # 2: velocity constant in a frame turning with the camera heading (linear.py); 1: T_a - T_b ~ 0
     motion_max_gap: int = 3  # frames: no motion row across a larger gap between registered frames
-    # a frame determined along some Manhattan axes only is registered when fully determined frames lie on
-    # both sides within this many degrees of turn: the motion prior interpolates the rest (0: off; needs motion_weight)
-    # (off by default: measured with oracle normals, office 300 frames registers 99 -> 281 frames but the
-    # centre error grows 2.1 -> 14.5 cm, as every observing frame's relations, wrong ones too, enter the solve)
+    # anchor frames (fixed along every axis by their own lines) this many degrees of turn apart or closer are
+    # linked by the motion prior, the frames between them registered (linear.py: Bridging; 0: off). Off: with
+    # true tracks the bedroom registers 49 -> 100 % at 0.8 % error, but on the pipeline's tracks (bedroom capture 1)
+    # the linear solve went 66 -> 300 frames and 2.2 -> 13 % centre error (26 % even with oracle normals)
     motion_bridge_deg: float = 0.0
     # floor relations whose line lies less than this share as deep below the cameras as the deepest floor
     # candidates (a first solve without them tells) are furniture tops, dropped (0: keep all, the paper)
@@ -207,6 +207,15 @@ class GraphConfig:
     support_weighting: bool = True  # relation sigma / sqrt(frames the relation was detected in)
     phases: tuple[int, ...] = (1, 2, 3)  # 1: lines+translations, 2: +rotations, 3: +intrinsics
     max_iterations: int = 30
+    # coplanarities are checked against a first solve without them (graph.py _verify_relations): dropped when
+    # their lines lie further apart than verify_sigma * std + verify_tolerance * median line distance. Off:
+    # five captures per scene, living/bedroom/office centre err. 2.48/0.70/1.89 -> 1.52/0.70/1.47 %, corner
+    # reprojection 1.13/0.71/0.92 -> 0.73/0.76/0.75 px (office capture 2: 25.9 -> 1.5 %), but on the kept-back
+    # captures (--seed 50) 1.79/5.28/1.89 -> 1.21/5.26/4.41 %, captures worse than 10 % 2 -> 4 (two offices)
+    verify_relations: bool = False
+    verify_sigma: float = 2.0
+    verify_tolerance: float = 0.0
+    verify_start_share: float = 0.75  # ... and the BA starts from that solve if it fixes this share of the frames
     reject_sigma: float = 5.0  # drop relations whose residual exceeds this many sigmas, then resolve
     incremental_batch: int | None = None  # frames per batch for incremental solves
     incremental_final_solve: bool = True  # after the last batch, solve everything once from the linear solution

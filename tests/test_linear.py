@@ -241,15 +241,48 @@ def test_motion_prior_bridges_frames_without_horizontal_lines(clean):
     cfg = Paper(camera_height_m=_height(p))
     strict = solve_linear(pre, tracks, p.relations, p.camera, cfg)
     assert not strict.registered[gap].any()  # their heights are not determined by any line
-    bridged = solve_linear(pre, tracks, p.relations, p.camera, Paper(camera_height_m=_height(p), motion_bridge_deg=45.0))
+    # the anchors on either side (frames 19 and 25) are ~49 degrees of turn apart
+    bridged = solve_linear(pre, tracks, p.relations, p.camera, Paper(camera_height_m=_height(p), motion_bridge_deg=60.0))
     reg = bridged.registered
     assert reg[gap].all() and reg.sum() > strict.registered.sum()
     s, R, t = umeyama(bridged.centers[reg], p.gt_centers[reg])
     err = np.linalg.norm((s * (R @ bridged.centers[reg].T)).T + t - p.gt_centers[reg], axis=1)
     assert np.median(err) < 0.01 and err[np.isin(np.flatnonzero(reg), gap)].max() < 0.05
-    # a narrow bridge does not reach the middle of the gap
-    narrow = solve_linear(pre, tracks, p.relations, p.camera, Paper(camera_height_m=_height(p), motion_bridge_deg=10.0))
-    assert not narrow.registered[22]
+    # a bridge narrower than the stretch without anchors registers none of it
+    narrow = solve_linear(pre, tracks, p.relations, p.camera, Paper(camera_height_m=_height(p), motion_bridge_deg=30.0))
+    assert not narrow.registered[gap].any()
+
+
+def test_motion_prior_links_a_half_the_lines_do_not(clean):
+    """Bridging (off by default): two halves of the sweep that share no track or relation are linked by the
+    body-motion prior when anchor frames of both lie within ``motion_bridge_deg`` of turn, and placed right."""
+    p = clean
+    pre, tr = p.preprocessed, p.tracks
+    split = 30
+    frame = pre.segments.frame
+    t_of = tr.track_of
+    on = t_of >= 0
+    in_a = np.zeros(tr.n, bool)
+    in_b = np.zeros(tr.n, bool)
+    in_a[t_of[on & (frame < split)]] = True
+    in_b[t_of[on & (frame >= split)]] = True
+    linking = in_a & in_b
+    tracks = Tracks(np.where(on & linking[np.maximum(t_of, 0)], -1, t_of).astype(np.int32), tr.axis)
+    r = p.relations
+    side = np.where(in_a, 0, 1)
+    bad = linking[r.track_a] | ((r.track_b >= 0) & (linking[np.maximum(r.track_b, 0)]
+                                                    | (side[r.track_a] != side[np.maximum(r.track_b, 0)])))
+    rel = r.subset(np.flatnonzero(~bad))
+    cfg = dict(camera_height_m=_height(p), floor_weight=0.0)  # the floor would link the heights
+    alone = solve_linear(pre, tracks, rel, p.camera, Paper(**cfg))
+    assert not alone.registered[split + 2:].any()
+    linked = solve_linear(pre, tracks, rel, p.camera, Paper(motion_bridge_deg=60.0, **cfg))  # anchors 27 and 34: 57 deg
+    reg = linked.registered
+    assert reg[:split].mean() >= 0.8 and reg[split + 2:].sum() >= 8  # B: up to its last anchor (frame 40)
+    s, R, t = umeyama(linked.centers[reg], p.gt_centers[reg])
+    err = np.linalg.norm((s * (R @ linked.centers[reg].T)).T + t - p.gt_centers[reg], axis=1)
+    diameter = np.max(np.linalg.norm(p.gt_centers[:, None] - p.gt_centers[None], axis=2))
+    assert np.median(err) < 0.02 * diameter, np.median(err) / diameter
 
 
 def test_furniture_tops_taken_for_floor_are_dropped(clean):

@@ -75,6 +75,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--false-relations", type=float, default=0.0, help="ratio of injected wrong coplanarities")
     ap.add_argument("--no-height", action="store_true", help="solve without the camera height (arbitrary scale)")
     ap.add_argument("--motion-weight", type=float, default=LinearConfig.motion_weight, help="body-motion prior (0: paper)")
+    ap.add_argument("--bridge-deg", type=float, default=LinearConfig.motion_bridge_deg,
+                    help="motion_bridge_deg: anchor frames this close in turn are linked by the motion prior")
     ap.add_argument("--tracks-first", action="store_true",
                     help="solve from the tracks alone unless the coplanarities are needed to register (option)")
     ap.add_argument("--json", default=None, help="write the results here")
@@ -89,7 +91,8 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         sol = solve_linear(p.preprocessed, p.tracks, p.relations, p.camera, LinearConfig(camera_height_m=height,
                                                                                        motion_weight=args.motion_weight,
-                                                                                       tracks_first=args.tracks_first))
+                                                                                       tracks_first=args.tracks_first,
+                                                                                       motion_bridge_deg=args.bridge_deg))
         dt = time.perf_counter() - t0
         r = evaluate(p, sol)
         r["seconds"] = dt
