@@ -98,12 +98,10 @@ def test_scale_without_camera_height(clean):
     err = np.linalg.norm((s2 * (R2 @ sol2.centers[reg2].T)).T + t2 - p.gt_centers[reg2], axis=1)
     assert err.max() < 1e-3
 
-def test_disconnected_halves_register_only_the_larger(clean):
-    p = clean
-    F = p.n_frames
-    split = 30  # frames [0, 30) vs [30, 48)
-    pre, tr = p.preprocessed, p.tracks
-    frame = pre.segments.frame
+def _split_halves(p, split):
+    """Returns (tracks, relations) with every track and relation linking frames < split to the rest removed."""
+    tr = p.tracks
+    frame = p.preprocessed.segments.frame
     t_of = tr.track_of
     on = t_of >= 0
     in_a = np.zeros(tr.n, bool)
@@ -111,14 +109,20 @@ def test_disconnected_halves_register_only_the_larger(clean):
     in_a[t_of[on & (frame < split)]] = True
     in_b[t_of[on & (frame >= split)]] = True
     linking = in_a & in_b
-    track_of = np.where(on & linking[np.maximum(t_of, 0)], -1, t_of).astype(np.int32)
-    tracks = Tracks(track_of, tr.axis)
+    tracks = Tracks(np.where(on & linking[np.maximum(t_of, 0)], -1, t_of).astype(np.int32), tr.axis)
     r = p.relations
     side = np.where(in_a, 0, 1)
     bad = linking[r.track_a] | ((r.track_b >= 0) & (linking[np.maximum(r.track_b, 0)]
                                                     | (side[r.track_a] != side[np.maximum(r.track_b, 0)])))
-    keep = ~bad
-    rel = Relations(r.kind[keep], r.track_a[keep], r.track_b[keep], r.normal_axis[keep], r.support[keep])
+    return tracks, r.subset(np.flatnonzero(~bad))
+
+
+def test_disconnected_halves_register_only_the_larger(clean):
+    p = clean
+    F = p.n_frames
+    split = 30  # frames [0, 30) vs [30, 48)
+    pre = p.preprocessed
+    tracks, rel = _split_halves(p, split)
     assert np.any(rel.kind == FLOOR)  # floor relations remain in both halves: they fix heights only
     sol = solve_linear(pre, tracks, rel, p.camera, Paper(camera_height_m=_height(p)))
     reg = sol.registered
@@ -257,22 +261,9 @@ def test_motion_prior_links_a_half_the_lines_do_not(clean):
     """Bridging (off by default): two halves of the sweep that share no track or relation are linked by the
     body-motion prior when anchor frames of both lie within ``motion_bridge_deg`` of turn, and placed right."""
     p = clean
-    pre, tr = p.preprocessed, p.tracks
+    pre = p.preprocessed
     split = 30
-    frame = pre.segments.frame
-    t_of = tr.track_of
-    on = t_of >= 0
-    in_a = np.zeros(tr.n, bool)
-    in_b = np.zeros(tr.n, bool)
-    in_a[t_of[on & (frame < split)]] = True
-    in_b[t_of[on & (frame >= split)]] = True
-    linking = in_a & in_b
-    tracks = Tracks(np.where(on & linking[np.maximum(t_of, 0)], -1, t_of).astype(np.int32), tr.axis)
-    r = p.relations
-    side = np.where(in_a, 0, 1)
-    bad = linking[r.track_a] | ((r.track_b >= 0) & (linking[np.maximum(r.track_b, 0)]
-                                                    | (side[r.track_a] != side[np.maximum(r.track_b, 0)])))
-    rel = r.subset(np.flatnonzero(~bad))
+    tracks, rel = _split_halves(p, split)
     cfg = dict(camera_height_m=_height(p), floor_weight=0.0)  # the floor would link the heights
     alone = solve_linear(pre, tracks, rel, p.camera, Paper(**cfg))
     assert not alone.registered[split + 2:].any()
