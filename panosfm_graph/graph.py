@@ -406,10 +406,9 @@ def bundle_adjust(pre: Preprocessed, tracks: Tracks, relations: Relations, initi
     n_rejected = 0
     rejected: list[int] = []
     if config.verify_relations and len(prob.rel_idx):
-        values, rel_mask, n_unverified = _verify_relations(pre, relations, prob, R_wc, K, config, gauge, values,
-                                                           residuals)
+        values, rel_mask = _verify_relations(pre, relations, prob, R_wc, K, config, gauge, values, residuals)
         rejected.extend(int(r) for r in prob.rel_idx[~rel_mask])
-        residuals["relations_unverified"] = n_unverified
+        residuals["relations_unverified"] = int(np.sum(~rel_mask))
     for phase in phases:
         if phase >= 2:
             for i in prob.rot_frames:
@@ -470,8 +469,8 @@ def bundle_adjust(pre: Preprocessed, tracks: Tracks, relations: Relations, initi
 
 def _verify_relations(pre: Preprocessed, relations: Relations, prob: _Problem, R_wc: np.ndarray, K: np.ndarray,
                       config: GraphConfig, gauge: dict, values: gtsam.Values,
-                      residuals: dict) -> tuple[gtsam.Values, np.ndarray, int]:
-    """Returns (values, relation mask over ``prob.rel_idx``, count dropped): coplanarities checked against the tracks.
+                      residuals: dict) -> tuple[gtsam.Values, np.ndarray]:
+    """Returns (values, relation mask over ``prob.rel_idx``): coplanarities checked against the tracks.
 
     Our addition to paper §3.4. Phase 1 is solved first without any coplanarity (reprojection
     and colinearity only); a pair coplanarity whose two lines that solve determines
@@ -515,7 +514,7 @@ def _verify_relations(pre: Preprocessed, relations: Relations, prob: _Problem, R
     false = known & (res > config.verify_sigma * np.hypot(sa, sb) + tol)
     log.info("BA: %d of %d coplanarities contradict the tracks' own solve and are dropped (%d checked)",
              int(false.sum()), len(false), int(known.sum()))
-    return (free if share >= config.verify_start_share else values), ~false, int(false.sum())
+    return (free if share >= config.verify_start_share else values), ~false
 
 
 def _keep_camera_height(sol: Solution, initial: Solution, relations: Relations, prob: _Problem,

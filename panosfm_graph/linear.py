@@ -439,10 +439,9 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
         registered, reasons = register_frames(F, o_frame, o_track, n_int, axis, r_a, r_b, r_k, f_t,
                                               config.min_view_eig, turned_deg=turned_degrees(pre.R_wc),
                                               bridge_deg=bridge, manhattan=M)
-    solved = registered.copy()
 
-    # --- the system over the solved frames -------------------------------------------------
-    o_sel = solved[o_frame]
+    # --- the system over the registered frames (the only unknowns) -------------------------
+    o_sel = registered[o_frame]
     n_obs = np.bincount(o_track[o_sel], minlength=T)
     live = n_obs > 0
     rs = live[r_a] & live[r_b]
@@ -452,7 +451,7 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     rs &= in_sys[r_a] & in_sys[r_b]
     fs &= in_sys[f_t]
     o_sel &= in_sys[o_track]
-    frames = np.flatnonzero(solved)
+    frames = np.flatnonzero(registered)
     Fk = len(frames)
     frame_col = np.full(F, -1)
     frame_col[frames] = np.arange(Fk)
@@ -488,14 +487,11 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
         if config.zero_translation:
             fixed_val[:3 * Fk] = 0.0
         else:
-            gauge = np.flatnonzero(registered)
-            fixed_val[tau_col(gauge[0] if len(gauge) else frames[0], np.arange(3))] = 0.0
+            fixed_val[tau_col(frames[0], np.arange(3))] = 0.0
     ref_obs = -1
     if not use_floor and len(ob):
         # fix one depth: an observation in the first registered frame of its most observed track
-        ob_ref = ob[registered[o_frame[ob]]]
-        ob_ref = ob_ref if len(ob_ref) else ob
-        cand = ob_ref[o_frame[ob_ref] == o_frame[ob_ref].min()]
+        cand = ob[o_frame[ob] == o_frame[ob].min()]
         ref_obs = int(cand[np.argmax(n_obs[o_track[cand]])])
         t0 = o_track[ref_obs]
         tau0 = np.zeros(3)  # the reference frame's centre is the origin
@@ -611,14 +607,12 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
 
     # --- scale normalisation -----------------------------------------------------------------
     tau = x[:3 * Fk].reshape(Fk, 3)
-    reg_k = registered[frames]  # solved frames that are reported
-    ob_reg = registered[o_frame[ob]]
     if scale_mode == "metric":
-        s = H / (tau[reg_k, _VERTICAL].mean() - h0)
+        s = H / (tau[:, _VERTICAL].mean() - h0)
     elif scale_mode == "camera_to_floor":
-        s = 1.0 / (tau[reg_k, _VERTICAL].mean() - h0)
+        s = 1.0 / (tau[:, _VERTICAL].mean() - h0)
     else:
-        s = 1.0 / lam[ob_reg].mean() if np.any(ob_reg) else 1.0
+        s = 1.0 / lam.mean() if len(lam) else 1.0
     if not np.isfinite(s) or s <= 0:
         log.warning("linear: degenerate scale (%s); left unnormalised", s)
         s = 1.0
@@ -627,24 +621,23 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     tau = x[:3 * Fk].reshape(Fk, 3)
     h = x[col_h]
 
-    centers_all = np.full((F, 3), np.nan)
-    centers_all[frames] = tau @ M
-    centers = np.where(registered[:, None], centers_all, np.nan)
+    centers = np.full((F, 3), np.nan)
+    centers[frames] = tau @ M
 
     # --- lines: from the observations of registered frames -----------------------------------
-    P = centers_all[o_f] + lam[:, None] * D[ob]  # (n, 3) observation points (world)
+    P = centers[o_f] + lam[:, None] * D[ob]  # (n, 3) observation points (world)
     Pm = P @ M.T
     coord = np.full((T, 3), 0.0)
     for k in range(3):
-        has_k = (o_axis[ob] != k) & ob_reg
+        has_k = o_axis[ob] != k
         coord[:, k] = _group_median(Pm[has_k, k], o_t[has_k], T)
     coord[np.arange(T), axis] = 0.0
-    n_obs_reg = np.bincount(o_t[ob_reg], minlength=T)
-    valid = in_sys & (n_obs_reg > 0) & (n_obs_reg + n_rel >= 2)
+    n_obs_sys = np.bincount(o_t, minlength=T)  # observations in the system
+    valid = in_sys & (n_obs_sys > 0) & (n_obs_sys + n_rel >= 2)
     valid &= np.isfinite(coord).all(axis=1)
     taylor = np.where(valid[:, None], coord @ M, np.nan)
     direction = M[axis]
-    extent = _extents(pre, camera, obs[ob][ob_reg], o_t[ob_reg], centers[o_f][ob_reg], taylor, direction, T)
+    extent = _extents(pre, camera, obs[ob], o_t, centers[o_f], taylor, direction, T)
     valid &= np.isfinite(extent).all(axis=1)
     lines = LineModel(taylor=taylor, direction=direction.copy(), axis=tracks.axis.astype(np.int8),
                       extent=extent, valid=valid)
