@@ -308,9 +308,7 @@ def line_extents(taylor: np.ndarray, direction: np.ndarray, endpoints: np.ndarra
 def _solution(pre: Preprocessed, tracks: Tracks, initial: Solution, prob: _Problem, values: gtsam.Values,
               R_wc: np.ndarray, camera: Camera, residuals: dict) -> Solution:
     """Returns the Solution read from ``values`` (Lambda projected onto its direction's normal plane, extents from observations)."""
-    centers = initial.centers.copy()
-    for i in prob.frames:
-        centers[i] = values.atPoint3(center_key(i))
+    centers = _read_points(values, center_key, prob.frames, initial.centers)
     taylor = initial.lines.taylor.copy()
     raw = np.array([values.atPoint3(line_key(t)) for t in prob.lines]).reshape(-1, 3)
     A = prob.directions[prob.lines]
@@ -335,6 +333,14 @@ def _solution(pre: Preprocessed, tracks: Tracks, initial: Solution, prob: _Probl
     centers[~initial.registered] = np.nan
     return Solution(R_wc=R_wc, centers=centers, registered=initial.registered.copy(), lines=lines, camera=camera,
                     metric=initial.metric, residuals=residuals)
+
+
+def _read_points(values: gtsam.Values, key: Callable[[int], int], ids: np.ndarray, base: np.ndarray) -> np.ndarray:
+    """Returns a copy of ``base`` (N, 3) with rows ``ids`` read from the Point3 variables ``key(id)``."""
+    out = np.array(base, dtype=np.float64, copy=True)
+    for i in ids:
+        out[i] = values.atPoint3(key(i))
+    return out
 
 
 def _camera_with_focal(camera: Camera, fx: float) -> Camera:
@@ -435,9 +441,7 @@ def bundle_adjust(pre: Preprocessed, tracks: Tracks, relations: Relations, initi
                      info["cost_after"], info["iterations"], info["seconds"])
             if rnd == rounds or len(prob.rel_idx) == 0:
                 break
-            taylor_now = initial.lines.taylor.copy()
-            for t in prob.lines:
-                taylor_now[t] = values.atPoint3(line_key(t))
+            taylor_now = _read_points(values, line_key, prob.lines, initial.lines.taylor)
             h = values.atVector(FLOOR_KEY)[0] if values.exists(FLOOR_KEY) else 0.0
             sub = relations.subset(prob.rel_idx)
             white = np.abs(relation_residuals(sub, pre.manhattan.directions, taylor_now, h)) / relation_sigmas(sub, config)
@@ -489,12 +493,8 @@ def _verify_relations(pre: Preprocessed, relations: Relations, prob: _Problem, R
     graph, _ = _build_graph(pre, relations, prob, 1, R_wc, K, mask, config, gauge)
     free, info = levenberg_marquardt(graph, values, config.max_iterations)
     residuals["phases"]["phase1_without_relations"] = info
-    taylor = np.full((len(prob.directions), 3), np.nan)
-    for t in prob.lines:
-        taylor[t] = free.atPoint3(line_key(t))
-    centers = np.full((len(R_wc), 3), np.nan)
-    for i in prob.frames:
-        centers[i] = free.atPoint3(center_key(i))
+    taylor = _read_points(free, line_key, prob.lines, np.full((len(prob.directions), 3), np.nan))
+    centers = _read_points(free, center_key, prob.frames, np.full((len(R_wc), 3), np.nan))
     line_sig, _ = determinacy(pre, relations, prob, mask, taylor, R_wc, centers, K, config)
     seen = line_sig[prob.obs_track] <= config.max_line_sigma_m  # as _mark_undetermined: determined lines only
     fixed = dataclasses.replace(prob, obs_seg=prob.obs_seg[seen], obs_track=prob.obs_track[seen],
