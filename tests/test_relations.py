@@ -107,14 +107,22 @@ def test_junction_needs_an_l_corner_with_consistent_normals():
         (20, 40, 60, 40), (66, 44, 66, 75),  # 2-3: ends 7 px apart but 6 px short of the lines' intersection
         (20, 55, 80, 55), (80, 55, 80, 65),  # 4-5: meet, labels 0 and 1 (plane normal z) but the L is on the wall
     ]
-    pre, tracks, nm = _frame(segs, [0, 2, 0, 2, 0, 1])
-    paper = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(**PAPER_JUNCTION)), JUNCTION)
+    labels = [0, 2, 0, 2, 0, 1]
+
+    def found(cfg):  # each pair in a frame of its own (the pairs' lines would cross each other's quads)
+        out = set()
+        for a in (0, 2, 4):
+            pre, tracks, nm = _frame(segs[a:a + 2], labels[a:a + 2])
+            out |= {(a + i, a + j, k) for i, j, k in _rows(detect_relations(pre, tracks, nm, CAM, cfg), JUNCTION)}
+        return out
+
+    paper = found(RelationsConfig(**PAPER_JUNCTION))
     assert {(0, 1, 1), (2, 3, 1)} <= paper
-    ours = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig()), JUNCTION)
+    ours = found(RelationsConfig())
     assert (0, 1, 1) in ours
     assert (2, 3, 1) not in ours  # a gap: the L-corner test rejects it
     assert (4, 5, 2) not in ours  # normals say the inside of the L is the wall (y), not a floor (z)
-    no_normals = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(junction_normals=False)), JUNCTION)
+    no_normals = found(RelationsConfig(junction_normals=False))
     assert (2, 3, 1) not in no_normals and (0, 1, 1) in no_normals
 
 
@@ -272,3 +280,19 @@ def test_a_line_inside_the_quad_rejects_the_coplanarity():
     # a piece of one of the two lines themselves is not "between" them
     pre2, tracks2, nm2 = _frame([(20, 10, 20, 60), (70, 10, 70, 60), (21, 62, 21, 80)], [2, 2, 2])
     assert (0, 1, 1) in _rows(detect_relations(pre2, tracks2, nm2, CAM, cfg), PARALLEL)
+
+
+def test_a_line_running_through_the_quad_rejects_it_even_with_its_midpoint_outside():
+    """A cabinet top running across the quad of two wall lines (its mid-point beyond them) rejects the pair."""
+    from panosfm_graph.relations import quad_crossed
+
+    # two z lines 50 px apart and a long x line crossing between them whose mid-point (x = 95) is outside
+    segs = [(20, 10, 20, 60), (70, 10, 70, 60), (30, 35, 160, 35)]
+    pre, tracks, nm = _frame(segs, [2, 2, 0])
+    i, j = np.array([0]), np.array([1])
+    assert quad_crossed(pre, i, j, min_len_px=5.0, samples=1).tolist() == [False]  # the mid-point test misses it
+    assert quad_crossed(pre, i, j, min_len_px=5.0, samples=9).tolist() == [True]
+    assert quad_crossed(pre, i, j, min_len_px=45.0, samples=9).tolist() == [False]  # ~40 px inside: too short
+    sampled = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(quad_clear_samples=9)), PARALLEL)
+    midpoint = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(quad_clear_samples=1)), PARALLEL)
+    assert (0, 1, 1) in midpoint and (0, 1, 1) not in sampled

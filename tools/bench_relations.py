@@ -14,7 +14,9 @@ correct when both GT edges lie on one face plane ``x_k = c`` of the scene
 (shell or box) within ``--tol`` (default 2 cm: posters 1.2 cm, a door leaf
 2 cm and window glass 1 cm off their wall count as on it; TV screens, door
 jambs and window trims 3.5-5 cm do not); FLOOR is correct when the GT edge
-lies at the floor height. Relations of tracks without a GT edge are left
+lies at the floor height; ``floor_verified`` scores the floor relations the
+linear solve keeps (``linear.verify_floor`` drops those above the lowest
+horizontal plane of a first solve: the tops of furniture). Relations of tracks without a GT edge are left
 out of the precision (``unk`` counts them). Recall is against the pairs of
 mapped tracks seen in a common frame whose GT edges lie on a common face
 rectangle (orthogonal / parallel), share an endpoint (junction), or lie on
@@ -36,8 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
-from panosfm_graph.config import Config, NormalsConfig, RelationsConfig
+from panosfm_graph.config import Config, LinearConfig, NormalsConfig, RelationsConfig
 from panosfm_graph.data import FLOOR, JUNCTION, ORTHOGONAL, PARALLEL, RELATION_NAMES
+from panosfm_graph.linear import verify_floor
 from panosfm_graph.normals import estimate_normals, normal_accuracy
 from panosfm_graph.pipeline import run_pipeline
 from panosfm_graph.relations import detect_relations, judge_relations, track_gt_edges
@@ -170,6 +173,10 @@ def bench_scene(cap: Path, work: Path, sources, width: int, tol: float, cfg: Rel
         rel = detect_relations(pre, tracks, nm, capture.camera, cfg)
         t_rel = time.perf_counter() - t0
         sc, _ = score(rel, g, truth, tol)
+        # the floor relations the solver keeps: linear.verify_floor drops those above the lowest plane
+        kept, _ = verify_floor(pre, tracks, rel, capture.camera, LinearConfig())
+        vf, _ = score(kept, g, truth, tol)
+        sc["floor_verified"] = vf["floor"]
         acc = normal_accuracy(nm, capture, pre.R_wc)
         rows.append({"scene": cap.name, "frames": capture.n_frames, "tracks": tracks.n,
                      "tracks_mapped": round(float(np.mean(g.track_edge >= 0)), 3), "source": nm.source,
@@ -215,8 +222,8 @@ def main() -> None:
         cap = ensure_capture(root, scene, args.frames, args.size, args.seed)
         for r in bench_scene(cap, root / "runs", sources, args.width, args.tol, cfg, cache):
             results.append(r)
-            cells = [f"{n[:5]} n={r[n]['n']} P={r[n]['precision']} R={r[n]['recall']}/{r[n]['n_gt']}"
-                     for n in RELATION_NAMES]
+            cells = [f"{n[:5] if n != 'floor_verified' else 'fl.ver'} n={r[n]['n']} P={r[n]['precision']} R={r[n]['recall']}/{r[n]['n_gt']}"
+                     for n in (*RELATION_NAMES, "floor_verified")]
             print(f"{scene:8s} {r['source']:15s} tracks={r['tracks']} mapped={r['tracks_mapped']} | "
                   + " | ".join(cells) + f" | {r['relations_s']}s")
     if args.json:
