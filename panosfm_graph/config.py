@@ -86,6 +86,13 @@ class TrackingConfig:
     # colinear pieces of one frame are grouped by their vanishing-point lines (colinear_groups), not by their
     # own endpoints (whose angle is ~1 degree off on a 60 px piece); False: the endpoint test
     vp_colinear: bool = True
+    # tracks of one axis that end and start at most this many frames apart are joined when their
+    # interpretation-plane angles, fitted linearly over frames, agree within merge_tol_px (0: off)
+    merge_gap_frames: int = 0
+    merge_tol_px: float = 2.0
+    merge_overlap: bool = False  # ... and tracks whose spans overlap (two pieces of one line followed side by side)
+    # tracks whose longest segment is shorter than this * min(w, h) are dropped (surface texture); 0: off
+    min_longest_frac: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -344,6 +344,51 @@ def test_bridging_reconnects_tracks_over_missed_frames(slow_pan):
     assert not np.any(tracks.track_of[dropped] >= 0)
 
 
+def test_fragments_of_one_line_are_joined_across_gaps(slow_pan):
+    """merge_fragments joins the tracks a missed detection cut, never tracks of two lines."""
+    import dataclasses
+
+    cap, pre = slow_pan
+    dropped = (pre.segments.frame % 4) == 2  # every fourth frame's segments are missing
+    pre_d = dataclasses.replace(pre, labels=np.where(dropped, -1, pre.labels).astype(np.int8))
+    base = with_overrides(Config(), tracking={"axis_angle_deg": 1.5, "merge_gap_frames": 0})
+    merged = with_overrides(Config(), tracking={"axis_angle_deg": 1.5, "merge_gap_frames": 3, "merge_tol_px": 2.0})
+    t0 = track_lines(cap, pre_d, base)
+    t1 = track_lines(cap, pre_d, merged)
+    ev0 = evaluate(cap, pre_d, t0, gt_px=1.5)
+    ev1 = evaluate(cap, pre_d, t1, gt_px=1.5)
+    assert t1.n < 0.6 * t0.n, (t0.n, t1.n)
+    assert ev1["track_length_mean"] >= 1.8 * ev0["track_length_mean"], (ev0, ev1)
+    assert ev1["track_purity_mean"] >= 0.95, ev1
+    # every merged track is a union of whole base tracks of one axis, one segment per frame
+    m = t0.track_of >= 0
+    pairs = np.unique(np.column_stack([t0.track_of[m], t1.track_of[m]]), axis=0)
+    assert len(np.unique(pairs[:, 0])) == len(pairs)
+    assert np.all(t0.axis[pairs[:, 0]] == t1.axis[pairs[:, 1]])
+    seg, off = t1.members()
+    t_of = np.repeat(np.arange(t1.n), np.diff(off))
+    key = t_of * cap.n_frames + pre.segments.frame[seg]
+    assert len(np.unique(key)) == len(key)
+    # a gap longer than merge_gap_frames is not crossed
+    short = with_overrides(Config(), tracking={"axis_angle_deg": 1.5, "merge_gap_frames": 1, "merge_tol_px": 2.0})
+    assert track_lines(cap, pre_d, short).n == t0.n
+
+
+def test_tracks_without_a_long_segment_are_dropped():
+    """drop_short_tracks removes texture tracks (no segment of the minimum length) and renumbers the rest."""
+    from panosfm_graph.data import Tracks
+    from panosfm_graph.lines.tracking import drop_short_tracks
+
+    ep = np.array([[0, 0, 100, 0], [0, 5, 30, 5],  # frame 0: a long piece of track 0, a short one of track 1
+                   [0, 0, 40, 0], [0, 5, 35, 5], [0, 9, 80, 9]], np.float32)  # frame 1: tracks 0, 1, 2
+    segs = Segments(ep, np.array([0, 0, 1, 1, 1], np.int32), np.array([0, 2, 5]), np.zeros((5, 3), np.uint8))
+    tracks = Tracks(np.array([0, 1, 0, 1, 2], np.int32), np.array([0, 1, 2], np.int8))
+    out = drop_short_tracks(tracks, segs, min_longest_px=50.0)
+    assert out.track_of.tolist() == [0, -1, 0, -1, 1]
+    assert out.axis.tolist() == [0, 2]
+    assert drop_short_tracks(tracks, segs, 20.0).track_of.tolist() == tracks.track_of.tolist()
+
+
 def _split_pieces(pre, frames_mask):
     """Returns pre with every Manhattan segment of the masked frames cut into two colinear pieces (8 px gap)."""
     import dataclasses

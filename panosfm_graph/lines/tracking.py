@@ -291,6 +291,124 @@ def _split_conflicts(edges: np.ndarray, weights: np.ndarray, frame: np.ndarray, 
     return np.unique(out, return_inverse=True)[1]
 
 
+def interpretation_angle(segments: Segments, seg_ids: np.ndarray, axis: np.ndarray, K: np.ndarray,
+                         R_wc: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """Returns (N,) the angle (rad, modulo pi) of the plane through the camera and each segment's 3D line.
+
+    The plane holds the Manhattan direction ``directions[axis]`` (world) and
+    the ray of the segment's mid-point, so its normal lies in the plane
+    orthogonal to that direction; the angle is the normal's direction there
+    (basis: the other two Manhattan directions). For a camera that only
+    rotates it is the same in every frame; the camera's translation makes it
+    drift slowly (2-5 px per frame at 1.5 m). The vanishing point fixes the
+    image line's direction, so the mid-point alone gives the angle (the
+    segment's own angle is ~1 degree off on a short piece).
+    """
+    ep = segments.endpoints[seg_ids].astype(np.float64)
+    mid = np.column_stack([0.5 * (ep[:, :2] + ep[:, 2:]), np.ones(len(ep))]) @ np.linalg.inv(K).T
+    ray = np.einsum("nij,nj->ni", R_wc[segments.frame[seg_ids]], mid)
+    other = np.array([[1, 2], [0, 2], [0, 1]])[axis]
+    n = np.cross(directions[axis], ray)
+    return np.arctan2(np.sum(n * directions[other[:, 1]], axis=1), np.sum(n * directions[other[:, 0]], axis=1))
+
+
+def _wrap_pi(a: np.ndarray) -> np.ndarray:
+    """Returns angles modulo pi in [-pi/2, pi/2)."""
+    return (a + np.pi / 2) % np.pi - np.pi / 2
+
+
+def merge_fragments(tracks: Tracks, segments: Segments, K: np.ndarray, R_wc: np.ndarray, directions: np.ndarray,
+                    gap_frames: int, tol_px: float, overlap: bool = False) -> Tracks:
+    """Returns tracks with fragments of one 3D line joined (our addition to supplement §3).
+
+    A line whose detections break into pieces (low contrast, texture) is
+    tracked as a chain of short tracks: the frame-to-frame matching loses it
+    for a frame or two and starts a new track. Each track's
+    :func:`interpretation_angle` is fitted as a linear function of the frame
+    (the drift is the parallax of the camera's translation); a track that
+    ends ``1..gap_frames`` frames before another of the same Manhattan axis
+    starts is joined to it when the two fits, evaluated half-way across the
+    gap, agree within ``tol_px / f``. Each track end joins at most one track
+    start (nearest fits first), so tracks join into chains and never hold two
+    segments of one frame. With ``overlap``, tracks whose spans overlap (two
+    pieces of one line followed side by side) are joined too when their fits
+    agree in the middle of the overlap; in a frame where the joined track then
+    holds two segments only the longest stays. Candidate pairs come from the
+    tracks sorted by their first frame (no all-pairs loop).
+    """
+    to = np.asarray(tracks.track_of)
+    T = tracks.n
+    if T < 2 or gap_frames < 1:
+        return tracks
+    seg = np.flatnonzero(to >= 0)
+    t = to[seg].astype(np.int64)
+    fr = segments.frame[seg].astype(np.int64)
+    ax = tracks.axis[t].astype(np.int64)
+    phi = interpretation_angle(segments, seg, ax, K, R_wc, directions)
+    first = np.full(T, np.iinfo(np.int64).max)
+    last = np.full(T, -1)
+    np.minimum.at(first, t, fr)
+    np.maximum.at(last, t, fr)
+    # unwrap each track's angles around its first segment's, then a least-squares line phi(f - first)
+    ref = np.zeros(T)
+    ref[t[::-1]] = phi[::-1]  # a segment of each track (the first listed)
+    p = ref[t] + _wrap_pi(phi - ref[t])
+    x = (fr - first[t]).astype(np.float64)
+    n = np.bincount(t, minlength=T).astype(np.float64)
+    sx, sp_ = np.bincount(t, x, T), np.bincount(t, p, T)
+    sxx, sxp = np.bincount(t, x * x, T), np.bincount(t, x * p, T)
+    den = n * sxx - sx * sx
+    ok = den > 1e-9
+    slope = np.where(ok, (n * sxp - sx * sp_) / np.where(ok, den, 1.0), 0.0)
+    icpt = (sp_ - slope * sx) / np.maximum(n, 1.0)
+    # candidates: b starts after a's first frame and at most gap_frames after a's last, same axis
+    order = np.argsort(first, kind="stable")
+    lo = np.searchsorted(first[order], (first if overlap else last + 1), side="left")
+    hi = np.searchsorted(first[order], last + gap_frames, side="right")
+    cnt = np.maximum(hi - lo, 0)
+    a = np.repeat(np.arange(T), cnt)
+    b = order[np.repeat(lo, cnt) + (np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt))]
+    keep = (tracks.axis[a] == tracks.axis[b]) & (a != b) & ((first[b] > first[a]) | (b > a))
+    a, b = a[keep], b[keep]
+    seq = first[b] > last[a]
+    # where the two fits are compared: half-way across the gap, or the middle of the overlap
+    at = np.where(seq, 0.5 * (last[a] + first[b]), 0.5 * (first[b] + np.minimum(last[a], last[b])))
+    d = np.abs(_wrap_pi(icpt[b] + slope[b] * (at - first[b]) - icpt[a] - slope[a] * (at - first[a])))
+    keep = d * K[0, 0] < tol_px
+    a, b, d, seq = a[keep], b[keep], d[keep], seq[keep]
+    parent = np.arange(T)
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    used_a = np.zeros(T, bool)
+    used_b = np.zeros(T, bool)
+    for i in np.argsort(d, kind="stable"):  # candidates only (a few per track)
+        if seq[i]:  # a chain: each end continues into one start
+            if used_a[a[i]] or used_b[b[i]]:
+                continue
+            used_a[a[i]] = used_b[b[i]] = True
+        ra, rb = find(int(a[i])), find(int(b[i]))
+        if ra != rb:
+            parent[rb] = ra
+    root = np.array([find(i) for i in range(T)])
+    ids, new = np.unique(root, return_inverse=True)
+    track_of = np.where(to >= 0, new[np.maximum(to, 0)], -1).astype(np.int32)
+    # one segment per frame per track: the longest stays
+    s = np.flatnonzero(track_of >= 0)
+    length = np.linalg.norm(segments.endpoints[s, 2:].astype(np.float64) - segments.endpoints[s, :2], axis=1)
+    o = np.lexsort((-length, segments.frame[s], track_of[s]))
+    key_t, key_f = track_of[s][o], segments.frame[s][o]
+    dup = np.concatenate([[False], (key_t[1:] == key_t[:-1]) & (key_f[1:] == key_f[:-1])])
+    track_of[s[o][dup]] = -1
+    log.info("fragments: %d tracks joined into %d (gaps <= %d frames, %.1f px, %d duplicate segments left out)",
+             T, len(ids), gap_frames, tol_px, int(dup.sum()))
+    return Tracks(track_of=track_of, axis=tracks.axis[ids].astype(np.int8))
+
+
 def track_lines(
     segments: Segments,
     labels: np.ndarray,
@@ -407,4 +525,34 @@ def track_lines(
         "%d tracks from %d matches over %d frame pairs (mean length %.1f)",
         len(ids), len(edges), len(pairs), keep.sum() / max(len(ids), 1),
     )
-    return Tracks(track_of=track_of, axis=axis)
+    tracks = Tracks(track_of=track_of, axis=axis)
+    if cfg.merge_gap_frames > 0 and directions is not None:
+        tracks = merge_fragments(tracks, segments, K, R_wc, directions, cfg.merge_gap_frames, cfg.merge_tol_px,
+                                 cfg.merge_overlap)
+    if cfg.min_longest_frac > 0:
+        tracks = drop_short_tracks(tracks, segments, cfg.min_longest_frac * min_side)
+    return tracks
+
+
+def drop_short_tracks(tracks: Tracks, segments: Segments, min_longest_px: float) -> Tracks:
+    """Returns the tracks whose longest segment is at least ``min_longest_px`` long (renumbered).
+
+    Our addition to supplement §3: surface texture (wood grain, a stone
+    top) gives short strokes that LSD finds, the Manhattan test labels
+    (roughly aligned) and the tracker follows (they are fixed in the world),
+    but they are no 3D line of the Manhattan directions, and as colinearity
+    and reprojection constraints they bend the solution. A structure line
+    is long in at least one frame.
+    """
+    to = np.asarray(tracks.track_of)
+    m = to >= 0
+    if not np.any(m):
+        return tracks
+    length = np.linalg.norm(segments.endpoints[:, 2:].astype(np.float64) - segments.endpoints[:, :2], axis=1)
+    longest = np.zeros(tracks.n)
+    np.maximum.at(longest, to[m], length[m])
+    keep = longest >= min_longest_px
+    new = np.cumsum(keep) - 1
+    track_of = np.where(m & keep[np.maximum(to, 0)], new[np.maximum(to, 0)], -1).astype(np.int32)
+    log.info("tracks: %d of %d dropped, no segment of %.0f px (texture)", int((~keep).sum()), tracks.n, min_longest_px)
+    return Tracks(track_of=track_of, axis=tracks.axis[keep].astype(np.int8))
