@@ -116,7 +116,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     from .synth import synthesize
 
     path = synthesize(args.out, scene=args.scene, n_frames=args.frames, size=args.size, seed=args.seed,
-                      imu_drift_deg=args.imu_drift, turn_deg=args.turn, texture=args.texture,
+                      imu_drift_deg=args.imu_drift, turn_deg=args.turn, texture=args.texture, sway_m=args.sway,
                       blur=args.blur, noise=args.noise, gt_maps=not args.no_gt_maps)
     print(f"wrote {path}")
     return 0
@@ -199,6 +199,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--texture", type=float, default=1.0, help="surface texture strength (0 = textureless)")
     s.add_argument("--blur", type=float, default=0.0, metavar="PX", help="motion blur length")
     s.add_argument("--noise", type=float, default=0.0, help="image noise sigma (grey levels)")
+    s.add_argument("--sway", type=float, default=0.0, metavar="M",
+                   help="how far the spin departs from a circle (stand point wandering, arm varying), metres RMS")
     s.add_argument("--no-gt-maps", action="store_true", help="skip per-frame ground-truth normals and depth")
     s.set_defaults(func=_cmd_synth)
 

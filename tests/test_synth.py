@@ -113,6 +113,25 @@ def test_poses_match_trajectory_and_spin_shape(capture):
     assert np.all(np.abs(np.degrees(np.arcsin(fwd[:, 2]))) < 12.0)
 
 
+@pytest.mark.parametrize("sway", [0.05, 0.1])
+def test_sway_departs_from_the_circle_by_its_size(sway):
+    """``sway_m`` moves the stand point (not back to its start), the arm length and its angle, smoothly; 0 changes nothing."""
+    scene = make_scene("office", 2)
+    R0, c0, _ = spin_trajectory(scene, 300, seed=2)
+    R1, c1, _ = spin_trajectory(scene, 300, seed=2, sway_m=0.0)
+    np.testing.assert_array_equal(c0, c1)
+    np.testing.assert_array_equal(R0, R1)
+    R, c, _ = spin_trajectory(scene, 300, seed=2, sway_m=sway)
+    off = np.linalg.norm((c - c0)[:, :2], axis=1)
+    assert 0.7 * sway < np.sqrt(np.mean(off**2)) < 2.0 * sway  # stand point RMS sway, plus the arm's share
+    assert off.max() < 4 * sway
+    assert np.linalg.norm(np.diff(c, axis=0), axis=1).max() < 0.03  # smooth: under 3 cm a frame
+    np.testing.assert_allclose(c[:, 2], c0[:, 2])  # the height (and its bob) stays
+    heading = np.degrees(np.arctan2(R[:, 1, 2], R[:, 0, 2]) - np.arctan2(R0[:, 1, 2], R0[:, 0, 2]))
+    heading = (heading + 180) % 360 - 180
+    assert 0.2 * sway / 0.05 < np.std(heading) < 6.0 * sway / 0.05  # the arm's angle varies (2 deg RMS at 5 cm)
+
+
 @pytest.mark.parametrize("turn", [380.0, 200.0])
 def test_turn_angle(turn):
     scene = make_scene("office")

@@ -36,7 +36,7 @@ def _run(cmd: list[str]) -> tuple[int, float, str]:
 
 def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peers: list[str],
           seed: int = 0, reuse_peer: bool = False, seeds: int = 1, settings: list[str] = (),
-          resume: bool = False) -> dict:
+          resume: bool = False, sway_m: float = 0.0) -> dict:
     """Returns the benchmark record (also written to ``out/bench.json`` and ``out/bench.md``)."""
     from panosfm_graph.capture import load_capture
     from panosfm_graph.evaluate import evaluate_reconstruction
@@ -48,12 +48,14 @@ def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peer
     runs = [(k, scene, j) for j in range(max(seeds, 1)) for k, scene in enumerate(scenes)]
     set_args = [a for kv in settings for a in ("--set", kv)]
     record["settings"] = list(settings)
+    record["sway_m"] = sway_m
     for k, scene, j in runs:
         name = scene if j == 0 else f"{scene}#{j}"  # capture j of the scene: seed + k + 10 j
-        cap = out / "captures" / f"{scene}-{frames}-{size[0]}x{size[1]}-s{seed + k + 10 * j}"
+        cap = out / "captures" / (f"{scene}-{frames}-{size[0]}x{size[1]}-s{seed + k + 10 * j}"
+                                   + (f"-sway{sway_m:g}" if sway_m > 0 else ""))
         if not (cap / "imu.csv").exists():
             t0 = time.perf_counter()
-            synthesize(cap, scene=scene, n_frames=frames, size=size, seed=seed + k + 10 * j)
+            synthesize(cap, scene=scene, n_frames=frames, size=size, seed=seed + k + 10 * j, sway_m=sway_m)
             print(f"[{scene}] synthesised in {time.perf_counter() - t0:.1f} s", flush=True)
         gt = load_capture(cap).ground_truth
         height = float(gt.centers[:, 2].mean() - gt.scene.get("room", {}).get("min", [0, 0, 0])[2])
@@ -195,6 +197,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="reuse the cached stages of earlier runs in OUT (copy a runs/ folder there): fast setting "
                         "sweeps; seconds then no longer measure the whole pipeline")
     p.add_argument("--seeds", type=int, default=1, help="captures per scene (seeds SEED + k + 10 j)")
+    p.add_argument("--sway", type=float, default=0.0, metavar="M",
+                   help="synthesise spins that depart this far (m RMS) from an ideal circle (panosfm synth --sway)")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
                    help="a pipeline setting for panosfm run (repeatable)")
     args = p.parse_args(argv)
@@ -210,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         peers = [s.strip() for s in args.peer.split(",") if s.strip()]
     bench([s.strip() for s in args.scenes.split(",")], args.frames, (w, h), Path(args.out), peers, args.seed,
-          args.reuse_peer, args.seeds, args.set, args.resume)
+          args.reuse_peer, args.seeds, args.set, args.resume, args.sway)
     return 0
 
 

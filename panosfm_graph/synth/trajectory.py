@@ -7,6 +7,12 @@ outwards (nearly horizontal), yaw sweeps ``turn_deg`` degrees, and pitch and
 roll vary smoothly by a few degrees. Rotations are ``R_wc`` (world_from_camera,
 OpenCV camera frame: x right, y down, z forward).
 
+With ``sway_m`` > 0 the spin is less ideal, as a person's is: the stand point
+wanders (smooth, RMS ``sway_m``, not returning to where it started), the arm
+length varies (RMS ``sway_m / 2``) and so does the angle between the arm and
+the optical axis (RMS ``2 deg * sway_m / 0.05 m``). ``sway_m = 0`` (the
+default) gives exactly the circle above, identical to earlier versions.
+
 The IMU attitude is the true attitude with a heading drift that grows
 linearly in time from 0 at the first frame to ``imu_drift_deg`` at the last
 (a rotation about world +z applied on the left) and ~0.1 deg white noise,
@@ -39,12 +45,23 @@ class SpinParams:
     pitch_deg: tuple[float, float, float, float]  # offset, amplitude, cycles per sweep, phase
     roll_deg: tuple[float, float, float, float]
     duration_s: float  # time of the last frame
+    sway_m: float = 0.0  # how far from an ideal circle the spin is (module docstring)
+    sway: tuple = ()  # (4, 3, 2) amplitudes and (4, 3) phases: stand x, stand y, arm length, arm angle
 
 
-def spin_params(scene: Scene, n_frames: int, seed: int = 0, turn_deg: float = 380.0, fps: float = 30.0) -> SpinParams:
+_SWAY_CYCLES = np.array([0.55, 1.35, 2.2])  # cycles per sweep of the sway's three harmonics (not periodic)
+
+
+def spin_params(scene: Scene, n_frames: int, seed: int = 0, turn_deg: float = 380.0, fps: float = 30.0,
+                sway_m: float = 0.0) -> SpinParams:
     """Returns the seeded spin parameters for ``scene`` (the same seed gives the same spin)."""
     rng = np.random.default_rng([int(seed), 4242])
+    sway_rng = np.random.default_rng([int(seed), 4243])  # its own stream: sway_m = 0 leaves the rest unchanged
+    amp = sway_rng.normal(size=(4, 3)) / np.arange(1, 4)[None]
+    phase = sway_rng.uniform(0, 2 * np.pi, (4, 3))
     return SpinParams(
+        sway_m=float(sway_m),
+        sway=(amp, phase),
         stand_world=scene.stand_point_world.astype(np.float64),
         radius_m=float(rng.uniform(0.30, 0.40)),
         height_m=float(rng.uniform(1.45, 1.55)),
@@ -68,9 +85,11 @@ def spin_pose(p: SpinParams, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     yaw = np.radians(p.yaw0_deg + p.turn_deg * (s + p.yaw_wobble * np.sin(2 * np.pi * s) / (2 * np.pi)))
     radial = np.stack([np.cos(yaw), np.sin(yaw), np.zeros_like(yaw)], axis=1)
     z = p.height_m + p.bob_m * np.sin(2 * np.pi * p.bob_hz * t + p.bob_phase)
-    centers = p.stand_world[None] + p.radius_m * radial
+    sway = _sway(p, s)  # (N, 4): stand x, stand y (m), arm length (m), arm angle (deg); zeros without sway
+    centers = p.stand_world[None] + (p.radius_m + sway[:, 2:3]) * radial
+    centers[:, :2] += sway[:, :2]
     centers[:, 2] = z
-    look = yaw + np.radians(p.view_offset_deg)
+    look = yaw + np.radians(p.view_offset_deg + sway[:, 3])
     f = np.stack([np.cos(look), np.sin(look), np.zeros_like(look)], axis=1)  # camera z (forward)
     down = np.broadcast_to(np.array([0.0, 0.0, -1.0]), f.shape)  # camera y
     right = np.cross(down, f)  # camera x = y x z
@@ -82,8 +101,24 @@ def spin_pose(p: SpinParams, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return R_level @ R_local, centers
 
 
+def _sway(p: SpinParams, s: np.ndarray) -> np.ndarray:
+    """Returns (N, 4) the sway at sweep fractions ``s``: stand point x, y (m), arm length (m), arm angle (deg)."""
+    if p.sway_m <= 0:
+        return np.zeros((len(s), 4))
+    amp, phase = p.sway
+    grid = np.linspace(0.0, 1.0, 512)
+
+    def wave(x):  # (len(x), 4): a sum of three harmonics per component
+        return np.sum(amp[None] * np.cos(2 * np.pi * x[:, None, None] * _SWAY_CYCLES[None, None] + phase[None]), axis=2)
+
+    g = wave(grid)
+    mu, sd = g.mean(axis=0), np.maximum(g.std(axis=0), 1e-9)
+    scale = np.array([p.sway_m / np.sqrt(2), p.sway_m / np.sqrt(2), 0.5 * p.sway_m, 2.0 * p.sway_m / 0.05])
+    return (wave(np.asarray(s, dtype=np.float64)) - mu) / sd * scale
+
+
 def spin_trajectory(scene: Scene, n_frames: int, seed: int = 0, turn_deg: float = 380.0,
-                    fps: float = 30.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    fps: float = 30.0, sway_m: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Returns (R_wc (F, 3, 3), centres (F, 3), timestamps (F,)) of a person's spin at ``fps``.
 
     Ground-truth poses of a synthetic capture of the paper's input (§3: a
@@ -91,14 +126,14 @@ def spin_trajectory(scene: Scene, n_frames: int, seed: int = 0, turn_deg: float 
     a small circle): world_from_camera rotations, camera centres in metres,
     timestamps ``i / fps`` seconds.
     """
-    p = spin_params(scene, n_frames, seed, turn_deg, fps)
+    p = spin_params(scene, n_frames, seed, turn_deg, fps, sway_m)
     ts = np.arange(n_frames, dtype=np.float64) / float(fps)
     R, c = spin_pose(p, ts)
     return R, c, ts
 
 
 def imu_stream(scene: Scene, n_frames: int, seed: int = 0, turn_deg: float = 380.0, fps: float = 30.0,
-               imu_drift_deg: float = 3.0, noise_deg: float = 0.1, rate_hz: float = 100.0
+               imu_drift_deg: float = 3.0, noise_deg: float = 0.1, rate_hz: float = 100.0, sway_m: float = 0.0
                ) -> tuple[np.ndarray, np.ndarray]:
     """Returns (timestamps (N,), R_wc (N, 3, 3)): the drifting IMU attitude at ``rate_hz``.
 
@@ -107,7 +142,7 @@ def imu_stream(scene: Scene, n_frames: int, seed: int = 0, turn_deg: float = 380
     and white rotation noise of ``noise_deg`` RMS angle. The stream starts
     0.05 s before the first frame and ends at least 0.05 s after the last.
     """
-    p = spin_params(scene, n_frames, seed, turn_deg, fps)
+    p = spin_params(scene, n_frames, seed, turn_deg, fps, sway_m)
     t_last = (n_frames - 1) / float(fps)
     dt = 1.0 / rate_hz
     ts = np.arange(-0.05, t_last + 0.05 + dt, dt)

@@ -98,7 +98,7 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
                size: tuple[int, int] = (960, 540), seed: int = 0, *, imu_drift_deg: float = 3.0,
                turn_deg: float = 380.0, texture: float = 1.0, blur: float = 0.0, noise: float = 0.0,
                gt_maps: bool = True, workers: int = 2, fps: float = 30.0,
-               imu_noise_deg: float = 0.1) -> Path:
+               imu_noise_deg: float = 0.1, sway_m: float = 0.0) -> Path:
     """Returns the path of a new synthetic spin capture of ``scene`` written to ``out_dir``.
 
     ``size`` is (width, height) px; ``seed`` seeds the spin, IMU noise, image
@@ -106,20 +106,22 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
     drift accumulated from the first to the last frame. ``texture``: strength
     of the procedural surface texture (0 = textureless). ``blur``: horizontal
     motion blur length (px). ``noise``: image noise sigma (0..255 levels).
-    ``gt_maps=False`` skips the per-frame normal and depth maps.
+    ``gt_maps=False`` skips the per-frame normal and depth maps. ``sway_m``: how far
+    the spin departs from an ideal circle (stand point wandering, arm length and
+    angle varying; :mod:`panosfm_graph.synth.trajectory`), 0 = the ideal circle.
     Raises :class:`InputError` for an existing non-empty ``out_dir`` or bad settings.
     """
     out = Path(out_dir)
     _check_args(out, scene, n_frames, size, workers, imu_drift_deg=abs(imu_drift_deg), texture=texture,
-                blur=blur, noise=noise, imu_noise_deg=imu_noise_deg, turn_deg=turn_deg, fps=fps)
+                blur=blur, noise=noise, imu_noise_deg=imu_noise_deg, turn_deg=turn_deg, fps=fps, sway_m=sway_m)
     if fps <= 0 or turn_deg <= 0:
         raise InputError(f"fps and turn_deg must be > 0, got fps={fps}, turn_deg={turn_deg}")
     n_frames, size, seed = int(n_frames), (int(size[0]), int(size[1])), int(seed)
     sc = make_scene(scene, seed)
     K = intrinsics(size)
-    R_wc, centers, ts = spin_trajectory(sc, n_frames, seed=seed, turn_deg=turn_deg, fps=fps)
+    R_wc, centers, ts = spin_trajectory(sc, n_frames, seed=seed, turn_deg=turn_deg, fps=fps, sway_m=sway_m)
     t_imu, R_imu = imu_stream(sc, n_frames, seed=seed, turn_deg=turn_deg, fps=fps, imu_drift_deg=imu_drift_deg,
-                              noise_deg=imu_noise_deg)
+                              noise_deg=imu_noise_deg, sway_m=sway_m)
 
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -150,7 +152,7 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
         (gt / "scene.json").write_text(json.dumps(sc.to_json(), indent=1) + "\n")
         settings = dict(scene=scene, n_frames=n_frames, size=list(size), seed=seed, imu_drift_deg=imu_drift_deg,
                         imu_noise_deg=imu_noise_deg, turn_deg=turn_deg, texture=texture, blur=blur, noise=noise,
-                        fps=fps, gt_maps=bool(gt_maps))
+                        fps=fps, gt_maps=bool(gt_maps), sway_m=sway_m)
         (gt / "synth.json").write_text(json.dumps({"generator": "panosfm_graph.synth", **settings}, indent=1) + "\n")
 
         chunks = [list(range(i, min(i + CHUNK_FRAMES, n_frames))) for i in range(0, n_frames, CHUNK_FRAMES)]
