@@ -20,7 +20,7 @@ from .errors import InputError
 log = logging.getLogger("panosfm")
 
 COPLANARITIES = ("orthogonal", "parallel", "junction", "floor")
-FACTOR_TYPES = ("colinearity", "orthogonal", "parallel", "junction", "floor", "reprojection", "imu")
+FACTOR_TYPES = ("colinearity", "orthogonal", "parallel", "junction", "floor", "reprojection", "imu", "spin")
 
 
 def _coplanarity_set(cfg: Config, enabled: set[str]) -> Config:
@@ -32,6 +32,8 @@ def _coplanarity_set(cfg: Config, enabled: set[str]) -> Config:
 def _factor_off(cfg: Config, factor: str) -> Config:
     if factor in COPLANARITIES:
         return _coplanarity_set(cfg, set(COPLANARITIES) - {factor})
+    if factor == "spin":  # the spin model in both solves (linear rows, BA factors)
+        return with_overrides(cfg, linear={"spin_weight": 0.0}, graph={"spin_sigma_m": 0.0})
     key = {"colinearity": "colinearity", "reprojection": "reprojection", "imu": "imu_prior"}[factor]
     return with_overrides(cfg, graph={key: False})
 
@@ -56,7 +58,7 @@ def ablation_sets(sets: str | list[str], base: Config = Config()) -> dict[str, C
         raise InputError(f"unknown factor type(s) {', '.join(unknown)}; choose from {', '.join(FACTOR_TYPES)}, "
                          "or the sets 'paper' / 'factors'")
     cfg = _coplanarity_set(base, {n for n in names if n in COPLANARITIES})
-    for f in ("colinearity", "reprojection", "imu"):
+    for f in ("colinearity", "reprojection", "imu", "spin"):
         if f not in names:
             cfg = _factor_off(cfg, f)
     return {"+".join(names): cfg}

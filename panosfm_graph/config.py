@@ -180,6 +180,15 @@ class LinearConfig:
     # true tracks the bedroom registers 49 -> 100 % at 0.8 % error, but on the pipeline's tracks (bedroom capture 1)
     # the linear solve went 66 -> 300 frames and 2.2 -> 13 % centre error (26 % even with oracle normals)
     motion_bridge_deg: float = 0.0
+    # spin model (our addition; linear.py _spin_rows): every centre on the circle the phone describes about a
+    # (slowly wandering) stand point, one arm for the whole sweep. Weight: sigma of a colinearity row / sigma of a
+    # centre off the circle (rows in m; ~2.5 mm / 1.2 cm); 0: off (the paper). Measured (tools/bench.py --seeds 5,
+    # medians living/bedroom/office centre err., captures worse than 10 %): ideal circles 2.41/0.70/2.93 % (3 of 15)
+    # -> 1.53/0.70/0.61 % (0); spins swaying 5 cm (--sway 0.05) 1.88/0.75/22.7 % (4) -> 1.52/0.68/1.90 % (0)
+    spin_weight: float = 0.2
+    spin_vertical_ratio: float = 1.0  # ... the vertical row's weight relative to the horizontal ones
+    spin_knot_deg: float = 90.0  # ... the stand point is interpolated between knots this turn apart (0: one stand point)
+    spin_walk_ratio: float = 1.0  # ... rows tying neighbouring knots, weight relative to spin_weight
     # floor relations whose line lies less than this share as deep below the cameras as the deepest floor
     # candidates (a first solve without them tells) are furniture tops, dropped (0: keep all, the paper)
     floor_verify_ratio: float = 0.85
@@ -228,6 +237,15 @@ class GraphConfig:
     verify_sigma: float = 2.0
     verify_tolerance: float = 0.0
     verify_start_share: float = 0.75  # ... and the BA starts from that solve if it fixes this share of the frames
+    # spin prior (our addition; factors/spin_prior.py): std of a centre off the circle the phone describes about a
+    # (slowly wandering) stand point, one arm for the whole sweep (m); 0: off (the paper). Without it, parts of
+    # the sweep joined by few tracks take their own scale (measured: office capture 12, the middle of the
+    # sweep at 1/100 of the ends' scale, 36 % centre error); with it 0.6 % (linear.spin_weight on, see there)
+    spin_sigma_m: float = 0.05
+    spin_vertical_ratio: float = 1.0  # ... the vertical std relative to the horizontal one
+    spin_robust: str = "huber"  # ... its kernel (k = robust_k)
+    spin_knot_deg: float = 90.0  # ... the stand point is interpolated between knots this turn apart (0: one stand point)
+    spin_walk_sigma_m: float = 0.05  # ... std of the stand point's step between neighbouring knots (m)
     reject_sigma: float = 5.0  # drop relations whose residual exceeds this many sigmas, then resolve
     incremental_batch: int | None = None  # frames per batch for incremental solves
     incremental_final_solve: bool = True  # after the last batch, solve everything once from the linear solution

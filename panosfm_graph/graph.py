@@ -10,7 +10,8 @@ Variables (keys made by :func:`center_key`, :func:`rotation_key`, ...):
   seen in >= 2 registered frames);
 * ``h0``    1-vector floor height (the floor plane is ``z . X = h``), present
   when floor relations are used;
-* ``f0``    1-vector focal length fx in pixels (phase 3; fy keeps the aspect).
+* ``f0``    1-vector focal length fx in pixels (phase 3; fy keeps the aspect);
+* ``s<j>``  ``gtsam.Point3`` stand-point knot j, ``a0`` 2-vector arm (the spin prior, below).
 
 Factors (``factors`` package), switched by :class:`GraphConfig`:
 line reprojection (one factor per chunk of a track's observations, sigma
@@ -25,6 +26,13 @@ relations false) their sum made a collapsed sweep cheaper than the true one;
 Geman-McClure caps each at ``k^2 / 2``), IMU relative
 rotations between consecutive registered frames (``imu_sigma_deg``, scaled by
 sqrt of the frame gap).
+
+Spin prior (our addition, ``spin_sigma_m``; ``factors.spin_prior``): every centre lies on the circle
+the phone describes about the person's stand point (knots ``s<j>`` every ``spin_knot_deg`` of turn, a
+random walk of ``spin_walk_sigma_m`` between them) with one arm ``a0`` (2-vector) for the whole sweep,
+Huber-robust. Without it, tracks of a few frames leave the parts of a sweep free to take their own
+scale, which reprojection cannot see (measured: from a linear solve 0.5 % off, 3-frame tracks drift to
+48 % of the trajectory's diameter; with it 0.6 %).
 
 Gauge: a tight prior holds the first registered camera centre at its initial
 position; the world orientation is fixed by the Manhattan directions of the
@@ -91,6 +99,12 @@ def line_key(t: int) -> int:
 
 FLOOR_KEY = gtsam.symbol("h", 0)
 FOCAL_KEY = gtsam.symbol("f", 0)
+ARM_KEY = gtsam.symbol("a", 0)  # spin prior: the arm (a, b) (2-vector)
+
+
+def stand_key(j: int) -> int:
+    """Returns the gtsam key of the spin prior's stand-point knot j (Point3)."""
+    return gtsam.symbol("s", int(j))
 
 _KIND_SWITCH = {ORTHOGONAL: "coplanarity_orthogonal", PARALLEL: "coplanarity_parallel",
                 JUNCTION: "coplanarity_junction", FLOOR: "coplanarity_floor"}
@@ -159,7 +173,7 @@ def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase:
     """Returns (graph, factor counts by type) for one phase; ``rel_mask`` selects relations of ``prob.rel_idx``."""
     graph = gtsam.NonlinearFactorGraph()
     counts = {"reprojection": 0, "colinearity": 0, "orthogonal": 0, "parallel": 0, "junction": 0, "floor": 0,
-              "imu": 0, "rotation_prior": 0, "prior": 0}
+              "imu": 0, "rotation_prior": 0, "prior": 0, "spin": 0}
     ep = pre.segments.endpoints.astype(np.float64)
     rel_sigma = _relation_sigma(config)
     if config.reprojection and len(prob.obs_seg):
@@ -208,6 +222,18 @@ def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase:
             noise = factors.imu_noise(config.imu_sigma_deg * np.sqrt(j - i))
             graph.add(factors.imu_rotation_factor(rotation_key(i), rotation_key(j), pre.R_wc_imu[i], pre.R_wc_imu[j], noise))
             counts["imu"] += 1
+    if "spin" in gauge:
+        M = pre.manhattan.directions
+        noise = factors.spin_noise(config.spin_sigma_m, config.spin_sigma_m * config.spin_vertical_ratio,
+                                   config.spin_robust, config.robust_k)
+        j, alpha, n_knots = gauge["spin"]
+        for i, jj, al in zip(prob.frames, j, alpha):
+            knots = (stand_key(jj), stand_key(min(jj + 1, n_knots - 1)))
+            graph.add(factors.spin_prior_factor(center_key(i), knots, al, ARM_KEY, M, R_fixed[i][:, 2], noise))
+        walk = gtsam.noiseModel.Isotropic.Sigma(3, config.spin_walk_sigma_m)
+        for jj in range(n_knots - 1):
+            graph.add(gtsam.BetweenFactorPoint3(stand_key(jj), stand_key(jj + 1), np.zeros(3), walk))
+        counts["spin"] = len(prob.frames)
     # gauge: first centre, scale
     tight = lambda d: gtsam.noiseModel.Isotropic.Sigma(d, GAUGE_SIGMA)  # noqa: E731
     graph.add(gtsam.PriorFactorPoint3(center_key(gauge["first"]), gauge["first_center"], tight(3)))
@@ -225,12 +251,44 @@ def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase:
     return graph, counts
 
 
+def fit_spin(centers: np.ndarray, view_dirs: np.ndarray, manhattan: np.ndarray, j: np.ndarray, alpha: np.ndarray,
+             n_knots: int, walk_weight: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Returns (stand-point knots (K, 3) world, arm (a, b)): the least-squares spin circle through the centres.
+
+    The model of ``factors.spin_prior`` (knots ``j``/``alpha`` from
+    :func:`factors.spin_prior.spin_knots`), linear in the knots and (a, b);
+    neighbouring knots are tied with ``walk_weight`` (relative to a centre).
+    """
+    M = np.asarray(manhattan, dtype=np.float64)
+    cm = np.asarray(centers, dtype=np.float64) @ M.T
+    h = factors.horizontal_direction(M, view_dirs)
+    n, K = len(cm), int(n_knots)
+    j1 = np.minimum(j + 1, K - 1)
+    rows = np.arange(n)
+    A = np.zeros((3 * n + 3 * (K - 1), 3 * K + 2))
+    b = np.zeros(len(A))
+    for k in range(3):
+        r = 3 * rows + k
+        np.add.at(A, (r, 3 * j + k), 1.0 - alpha)
+        np.add.at(A, (r, 3 * j1 + k), alpha)
+        if k < 2:
+            A[r, 3 * K] = h[:, k]
+            A[r, 3 * K + 1] = (-h[:, 1], h[:, 0])[k]
+        b[r] = cm[:, k]
+    for jj in range(K - 1):
+        for k in range(3):
+            r = 3 * n + 3 * jj + k
+            A[r, 3 * (jj + 1) + k], A[r, 3 * jj + k] = walk_weight, -walk_weight
+    x = np.linalg.lstsq(A, b, rcond=None)[0]
+    return x[:3 * K].reshape(K, 3) @ M, x[3 * K:].copy()
+
+
 def _dims(values: gtsam.Values) -> list[tuple[int, int]]:
     """Returns (key, tangent dimension) of every variable."""
     out = []
     for k in values.keys():
         ch = chr(gtsam.Symbol(k).chr())
-        out.append((k, 1 if ch in "hf" else 3))
+        out.append((k, 1 if ch in "hf" else 2 if ch == "a" else 3))
     return out
 
 
@@ -248,9 +306,9 @@ def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     err0 = err = graph.error(values)
     lam = lam0
     it = 0
-    unit = {d: gtsam.noiseModel.Unit.Create(d) for d in (1, 3)}
-    eyes = {d: np.eye(d) for d in (1, 3)}
-    zeros = {d: np.zeros(d) for d in (1, 3)}
+    unit = {d: gtsam.noiseModel.Unit.Create(d) for d in (1, 2, 3)}
+    eyes = {d: np.eye(d) for d in (1, 2, 3)}
+    zeros = {d: np.zeros(d) for d in (1, 2, 3)}
     for it in range(1, max_iterations + 1):
         gfg = graph.linearize(values)
         accepted = False
@@ -398,6 +456,16 @@ def bundle_adjust(pre: Preprocessed, tracks: Tracks, relations: Relations, initi
     for t in prob.lines:
         values.insert(line_key(t), np.asarray(initial.lines.taylor[t], dtype=np.float64))
     gauge = _gauge(relations, prob, initial, pre.manhattan.directions)
+    if config.spin_sigma_m > 0 and len(prob.frames) >= 3:
+        from .linear import turned_degrees
+
+        knots = factors.spin_knots(turned_degrees(pre.R_wc)[prob.frames], config.spin_knot_deg)
+        stand, arm = fit_spin(initial.centers[prob.frames], R_wc[prob.frames][:, :, 2], pre.manhattan.directions,
+                              *knots, walk_weight=config.spin_sigma_m / config.spin_walk_sigma_m)
+        for jj, p in enumerate(stand):
+            values.insert(stand_key(jj), p)
+        values.insert(ARM_KEY, arm)
+        gauge["spin"] = knots
     gauge["R_prior"] = {int(i): gtsam.Rot3(_orthonormal(R_wc[i])) for i in prob.rot_frames}
     residuals: dict = {"phases": {}, "factors": {}}
     rel_mask = np.ones(len(prob.rel_idx), bool)

@@ -30,12 +30,15 @@ def test_factor_sets_turn_off_one_each():
     assert sets["no reprojection"].graph.reprojection is False
     assert sets["no imu"].graph.imu_prior is False
     assert sets["no imu"].graph.reprojection is True
+    assert sets["no spin"].graph.spin_sigma_m == 0 and sets["no spin"].linear.spin_weight == 0
+    assert sets["all"].graph.spin_sigma_m > 0 and sets["no imu"].linear.spin_weight > 0
 
 
 def test_custom_list_and_unknown_names():
     (name, cfg), = ablation_sets("junction,floor,reprojection").items()
     assert _on(cfg) == {"junction", "floor"}
     assert cfg.graph.reprojection and not cfg.graph.colinearity and not cfg.graph.imu_prior
+    assert cfg.graph.spin_sigma_m == 0 and cfg.linear.spin_weight == 0
     with pytest.raises(InputError, match="unknown factor type"):
         ablation_sets("junction,walls")
 

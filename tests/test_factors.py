@@ -242,3 +242,44 @@ def test_builtin_relation_factors_equal_custom(robust):
             order.push_back(k)
         Hc, Hb = (_normal_equations(f, v, order) for f in (custom, builtin))
         np.testing.assert_allclose(Hb, Hc, rtol=1e-9, atol=1e-9 * np.abs(Hc).max())
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_spin_prior_jacobians_and_semantics(seed):
+    """The spin prior's analytic Jacobians equal central differences; it is zero on the spin circle."""
+    rng = np.random.default_rng(seed)
+    M = random_rot(rng).T  # rows: two horizontal Manhattan axes and up
+    C, S0, S1, AB = gtsam.symbol("c", 3), gtsam.symbol("s", 0), gtsam.symbol("s", 1), gtsam.symbol("a", 0)
+    view = rng.normal(size=3)
+    alpha = float(rng.uniform())
+    v = gtsam.Values()
+    v.insert(C, rng.normal(size=3))
+    v.insert(S0, rng.normal(size=3))
+    v.insert(S1, rng.normal(size=3))
+    v.insert(AB, rng.normal(size=2))
+    f = factors.spin_prior_factor(C, (S0, S1), alpha, AB, M, view, UNIT(3, 1.0))
+    check_jacobians(f, v)
+    # a centre on the circle about the interpolated stand point, at its height
+    h = factors.horizontal_direction(M, view)
+    a, b = 0.35, -0.04
+    arm_m = np.array([a * h[0] - b * h[1], a * h[1] + b * h[0], 0.0])  # Manhattan coordinates
+    s0, s1 = np.array([0.3, -1.2, 1.5]), np.array([0.36, -1.1, 1.52])
+    s = (1 - alpha) * s0 + alpha * s1
+    for lift, expect in ((0.0, [0.0, 0.0, 0.0]), (0.05, [0.0, 0.0, 0.05])):  # 5 cm above: the vertical residual only
+        on = gtsam.Values()
+        on.insert(C, s + M.T @ arm_m + lift * M[2])
+        on.insert(S0, s0)
+        on.insert(S1, s1)
+        on.insert(AB, np.array([a, b]))
+        np.testing.assert_allclose(f.unwhitenedError(on), expect, atol=1e-12)
+
+
+def test_spin_knots_interpolate_by_turn():
+    """Knots spread evenly over the turn; each frame lies between knots j and j + 1 at fraction alpha."""
+    turned = np.linspace(0.0, 380.0, 39)
+    j, alpha, n = factors.spin_knots(turned, 90.0)
+    assert n == 6  # ceil(380 / 90) = 5 intervals of 76 degrees
+    np.testing.assert_allclose((j + alpha) * 76.0, turned, atol=1e-9)
+    assert j.max() == 4 and alpha[-1] == pytest.approx(1.0)
+    j0, a0, n0 = factors.spin_knots(turned, 0.0)
+    assert n0 == 1 and not j0.any() and not a0.any()

@@ -103,6 +103,7 @@ def test_focal_length_refined_in_phase3(problem):
 @pytest.mark.parametrize("switch,counter", [
     ("colinearity", "colinearity"), ("coplanarity_orthogonal", "orthogonal"), ("coplanarity_parallel", "parallel"),
     ("coplanarity_junction", "junction"), ("coplanarity_floor", "floor"), ("imu_prior", "imu"),
+    ("spin_sigma_m", "spin"),
 ])
 def test_switching_a_factor_type_off_changes_graph_and_result(problem, switch, counter):
     p = problem
@@ -159,8 +160,8 @@ def test_relations_checked_against_the_tracks_alone():
                      imu_drift_deg=0.4)
     truth = p.relation_true
     results = {}
-    for check in (False, True):
-        cfg = dataclasses.replace(FAST, phases=(1,), verify_relations=check)
+    for check in (False, True):  # the option as measured: without the spin prior (graph.spin_sigma_m)
+        cfg = dataclasses.replace(FAST, phases=(1,), verify_relations=check, spin_sigma_m=0.0)
         sol = bundle_adjust(p.preprocessed, p.tracks, p.relations, perturbed(p), cfg)
         rej = np.array(sol.residuals["rejected_relations"], int)
         results[check] = (similarity_errors(p, sol), rej, sol.residuals)
@@ -271,3 +272,40 @@ def test_floor_gauge_keeps_mean_camera_height_when_first_camera_is_off(problem):
     assert abs(lines_h) < 0.02 * height, lines_h
     assert abs(sol.residuals["height_rescale"] - 1.0) > 0.05  # the rescale did act
     assert abs(d_est / d_gt - 1.0) < 0.1, d_est / d_gt
+
+
+@pytest.mark.parametrize("sway", [0.0, 0.05])
+def test_spin_prior_keeps_the_sweep_at_one_scale(sway):
+    """Tracks three frames long (the real tracker's fragments) leave the parts of a sweep free to take their
+    own scale: from a linear solve 0.5 % off, bundle adjustment without the spin prior drifts to a third
+    of the trajectory's diameter; with it, it stays at the start's accuracy (also on a spin swaying 5 cm
+    off the circle). Every spin-prior factor is in the graph, one per frame with a centre."""
+    from panosfm_graph.config import LinearConfig
+    from panosfm_graph.linear import solve_linear
+
+    p = make_problem("office", 120, (640, 360), seed=0, pixel_noise_px=0.5, rot_noise_deg=0.1, sway_m=sway)
+    tracks, rel = _fragments(p, 3)
+    h = float(p.gt_centers[:, 2].mean() - p.scene.to_world(np.zeros(3))[2])
+    lin = solve_linear(p.preprocessed, tracks, rel, p.camera, LinearConfig(camera_height_m=h, tracks_first=False))
+    err = {}
+    for sigma in (0.0, GraphConfig().spin_sigma_m):
+        sol = bundle_adjust(p.preprocessed, tracks, rel, lin, dataclasses.replace(FAST, spin_sigma_m=sigma))
+        assert sol.registered.mean() >= 0.8
+        err[sigma] = _centre_error(p, sol)
+        assert sol.residuals["factors"].get("spin", 0) == (int(np.sum(lin.registered)) if sigma else 0)
+    assert err[0.0] > 0.2, err
+    assert err[GraphConfig().spin_sigma_m] < (0.01 if sway == 0 else 0.02), err
+
+
+def _fragments(p, piece):
+    """Returns (Tracks, Relations) with every track cut into pieces of ``piece`` frames (tests/test_linear.py)."""
+    from test_linear import _fragment
+
+    tracks, rel, _ = _fragment(p, piece)
+    return tracks, rel
+
+
+def _centre_error(p, sol):
+    from test_linear import _centre_error as err
+
+    return err(p, sol)

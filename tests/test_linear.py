@@ -39,7 +39,7 @@ def _line_errors(p, sol, shift):
 def clean():
     return make_problem("living", 48, (480, 270), seed=0, pixel_noise_px=0.0)
 
-PAPER = dict(motion_weight=0.0)  # the paper's model: exact on noise-free data
+PAPER = dict(motion_weight=0.0, spin_weight=0.0)  # the paper's model (no motion or spin prior): exact on noise-free data
 
 
 def test_exact_recovery_noise_free_metric(clean):
@@ -384,3 +384,29 @@ def test_tracks_first_uses_the_coplanarities_only_when_the_tracks_register_too_l
     sol = solve_linear(p.preprocessed, short, rel, p.camera, LinearConfig(camera_height_m=H, tracks_first=True))
     alone = solve_linear(p.preprocessed, short, rel, p.camera, Paper(camera_height_m=H, coplanarity_weight=0.0))
     assert alone.registered.sum() < 0.8 * sol.registered.sum() and sol.residuals["coplanarities_in_linear"] is True
+
+
+@pytest.mark.parametrize("sway", [0.0, 0.05])
+def test_spin_prior_holds_fragmented_tracks(sway):
+    """The spin model alone (no motion prior) keeps 3-frame tracks at the long-track accuracy: one shared
+    arm binds the scale of every part of the sweep. On a spin that sways 5 cm off the circle (the stand
+    point wandering) the knots follow it. Measured (office, 120 frames): 47 % of the diameter without,
+    0.6 % with (sway 0.05: 40 % -> 1.4 %)."""
+    p = make_problem("office", 120, (640, 360), seed=0, pixel_noise_px=0.5, rot_noise_deg=0.1, sway_m=sway)
+    tracks, rel, _ = _fragment(p, 3)
+    errs = {}
+    for name, w in (("none", 0.0), ("spin", LinearConfig().spin_weight)):
+        sol = solve_linear(p.preprocessed, tracks, rel, p.camera,
+                           Paper(camera_height_m=_height(p), motion_weight=0.0, spin_weight=w))
+        assert sol.registered.mean() >= 0.8
+        errs[name] = _centre_error(p, sol)
+    assert errs["none"] > 0.2, errs
+    assert errs["spin"] < (0.01 if sway == 0 else 0.025), errs
+
+
+def _centre_error(p, sol):
+    """Returns the median centre error after a similarity alignment, relative to the trajectory diameter."""
+    reg = sol.registered
+    s, R, t = umeyama(sol.centers[reg], p.gt_centers[reg])
+    e = np.linalg.norm((s * (R @ sol.centers[reg].T)).T + t - p.gt_centers[reg], axis=1)
+    return np.median(e) / np.max(np.linalg.norm(p.gt_centers[:, None] - p.gt_centers[None], axis=2))

@@ -189,11 +189,12 @@ def _random_rotations(rng: np.random.Generator, n: int, sigma_deg: float) -> np.
 
 def make_problem(scene="living", n_frames: int = 60, size: tuple[int, int] = (480, 270), seed: int = 0, *,
                  pixel_noise_px: float = 0.3, rot_noise_deg: float = 0.0, false_relation_ratio: float = 0.0,
-                 turn_deg: float = 380.0, imu_drift_deg: float = 3.0) -> SyntheticProblem:
+                 turn_deg: float = 380.0, imu_drift_deg: float = 3.0, sway_m: float = 0.0) -> SyntheticProblem:
     """Returns a :class:`SyntheticProblem`: GT edges seen along a spin, as segments, tracks and relations.
 
     ``scene`` is a preset name (``make_scene(scene, seed)``) or a ``Scene``. See the module
-    docstring for visibility, noise and relation rules.
+    docstring for visibility, noise and relation rules. ``sway_m``: the spin departs this far from
+    an ideal circle (:mod:`panosfm_graph.synth.trajectory`).
     """
     try:
         from . import make_scene, spin_trajectory
@@ -208,7 +209,7 @@ def make_problem(scene="living", n_frames: int = 60, size: tuple[int, int] = (48
     camera = Camera("PINHOLE", w, h, np.array([f, f, (w - 1) / 2.0, (h - 1) / 2.0]))
     K = camera.K
 
-    gt_R, gt_c, _ = spin_trajectory(sc, n_frames, seed=seed, turn_deg=turn_deg)
+    gt_R, gt_c, _ = spin_trajectory(sc, n_frames, seed=seed, turn_deg=turn_deg, sway_m=sway_m)
     gt_R = np.asarray(gt_R, float)
     gt_c = np.asarray(gt_c, float)
     F = len(gt_c)

@@ -1,0 +1,95 @@
+"""Spin prior (our addition to paper §3.4): each camera centre lies on the circle the phone describes.
+
+The person turns about a stand point and holds the phone out in front, so a
+frame's centre ``c`` is the stand point ``S`` plus the arm, which keeps a
+fixed angle to the horizontal viewing direction ``h`` of the frame:
+
+    c - S = a h + b h_perp    (horizontal),    (c - S) . up = 0    (vertical)
+
+with ``h_perp`` = ``h`` turned 90 degrees about ``up``; ``(a, b)`` is the
+arm's length times the cosine / sine of that angle. A person's feet shuffle,
+so the stand point may wander: it is interpolated linearly, by the angle the
+camera has turned, between knots ``S_j`` a fixed turn apart
+(:func:`spin_knots`), neighbouring knots tied by a random-walk prior (a
+``BetweenFactorPoint3``). The residual is written in the Manhattan frame
+(rows of ``manhattan``: the two horizontal directions, then up). Variables:
+``c``, ``S_j`` Point3 (world, m), ``(a, b)`` a 2-vector (m). The one shared
+arm ties the scale of every part of the sweep, which line parallax alone
+leaves free wherever the sweep is weakly connected.
+"""
+from __future__ import annotations
+
+import functools
+
+import gtsam
+import numpy as np
+
+
+def spin_knots(turned_deg: np.ndarray, knot_deg: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """Returns (j (N,) int, alpha (N,), number of knots): ``S = (1 - alpha) S_j + alpha S_{j+1}`` per frame.
+
+    ``turned_deg`` (N,) is how far each frame has turned since the first;
+    knots lie every ``knot_deg`` degrees (``knot_deg`` <= 0: one fixed stand
+    point, ``alpha`` = 0).
+    """
+    t = np.asarray(turned_deg, dtype=np.float64)
+    t = t - (t.min() if len(t) else 0.0)
+    if knot_deg <= 0 or len(t) == 0 or t.max() <= 0:
+        return np.zeros(len(t), np.int64), np.zeros(len(t)), 1
+    n_int = max(int(np.ceil(t.max() / knot_deg)), 1)
+    step = t.max() / n_int  # knots spread evenly over the turn
+    u = t / step
+    j = np.minimum(np.floor(u).astype(np.int64), n_int - 1)
+    return j, u - j, n_int + 1
+
+
+def spin_prior_error(manhattan: np.ndarray, h: np.ndarray, alpha: float, this: gtsam.CustomFactor,
+                     values: gtsam.Values, jacobians) -> np.ndarray:
+    """Returns the 3-vector ``M (c - S) - [a h + b h_perp, 0]`` (m): the centre's offset from the spin circle.
+
+    Keys: c, S_j, S_{j+1}, (a, b); ``S = (1 - alpha) S_j + alpha S_{j+1}``.
+    ``manhattan`` (3, 3) rows: horizontal axes 0, 1 and up; ``h`` (2,) the
+    unit horizontal viewing direction in Manhattan coordinates (axes 0, 1).
+    """
+    keys = this.keys()
+    c = values.atPoint3(keys[0])
+    s = (1.0 - alpha) * values.atPoint3(keys[1]) + alpha * values.atPoint3(keys[2])
+    ab = values.atVector(keys[3])
+    arm = np.array([[h[0], -h[1]], [h[1], h[0]], [0.0, 0.0]])  # columns: h, h_perp (Manhattan coordinates)
+    if jacobians is not None:
+        jacobians[0] = manhattan.copy()
+        jacobians[1] = -(1.0 - alpha) * manhattan
+        jacobians[2] = -alpha * manhattan
+        jacobians[3] = -arm
+    return manhattan @ (c - s) - arm @ ab
+
+
+def spin_prior_factor(center_key: int, knot_keys: tuple[int, int], alpha: float, arm_key: int,
+                      manhattan: np.ndarray, view_dir: np.ndarray, noise) -> gtsam.CustomFactor:
+    """Returns a CustomFactor on (Point3 c, Point3 S_j, Point3 S_{j+1}, 2-vector (a, b)) putting c on the spin circle.
+
+    ``view_dir`` (3,) is the frame's optical axis (world); its horizontal
+    part, in Manhattan coordinates, is the ``h`` of :func:`spin_prior_error`.
+    ``noise`` is 3-dimensional (horizontal, horizontal, vertical). With one
+    stand point pass the same key twice and ``alpha`` = 0.
+    """
+    M = np.asarray(manhattan, dtype=np.float64).reshape(3, 3)
+    h = horizontal_direction(M, view_dir)
+    keys = [center_key, knot_keys[0], knot_keys[1], arm_key]
+    return gtsam.CustomFactor(noise, keys, functools.partial(spin_prior_error, M, h, float(alpha)))
+
+
+def horizontal_direction(manhattan: np.ndarray, view_dir: np.ndarray) -> np.ndarray:
+    """Returns (..., 2) the unit horizontal part of world directions ``view_dir`` (..., 3) in Manhattan axes 0, 1."""
+    v = np.asarray(view_dir, dtype=np.float64) @ np.asarray(manhattan, dtype=np.float64).T
+    h = v[..., :2]
+    return h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-12)
+
+
+def spin_noise(horizontal_sigma_m: float, vertical_sigma_m: float, robust: str = "none", k: float = 1.345):
+    """Returns the 3-dim diagonal noise model (sigmas in m) of :func:`spin_prior_factor`, robustified by ``robust``."""
+    from factors.robust import robust_kernel
+
+    base = gtsam.noiseModel.Diagonal.Sigmas(np.array([horizontal_sigma_m, horizontal_sigma_m, vertical_sigma_m]))
+    kernel = robust_kernel(robust, k)
+    return base if kernel is None else gtsam.noiseModel.Robust.Create(kernel, base)
