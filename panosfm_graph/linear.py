@@ -165,7 +165,7 @@ def register_frames(n_frames: int, obs_frame: np.ndarray, obs_track: np.ndarray,
                     track_axis: np.ndarray, rel_a: np.ndarray, rel_b: np.ndarray, rel_axis: np.ndarray,
                     floor_track: np.ndarray, min_view_eig: float, max_iterations: int = 10,
                     turned_deg: np.ndarray | None = None, bridge_deg: float = 0.0,
-                    manhattan: np.ndarray = np.eye(3)) -> tuple[np.ndarray, np.ndarray]:
+                    manhattan: np.ndarray = np.eye(3), spin_links: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((F,) bool frames whose translation the linear solve can determine, (F,) int8 reasons) (paper §3.3).
 
     ``reasons`` index :data:`UNREGISTERED_REASONS` (0 for a registered frame):
@@ -201,11 +201,12 @@ def register_frames(n_frames: int, obs_frame: np.ndarray, obs_track: np.ndarray,
         weak = weak_axes(scatter, min_view_eig, manhattan)
         anchor = kept & (np.bincount(obs_frame[oi], minlength=F) > 0) & ~weak.any(axis=1)
         link_a, link_b = motion_links(anchor, turned, bridge_deg)
+        hub = np.flatnonzero(anchor) if spin_links else np.zeros(0, int)  # the spin model ties every anchor
         labels = []
         for k in range(3):
             e_obs = oi & (track_axis[obs_track] != k)
-            rows = [obs_frame[e_obs], F + obs_track[e_obs], link_a]
-            cols = [F + obs_track[e_obs], obs_frame[e_obs], link_b]
+            rows = [obs_frame[e_obs], F + obs_track[e_obs], link_a, hub]
+            cols = [F + obs_track[e_obs], obs_frame[e_obs], link_b, np.full(len(hub), F + T + 1)]
             er = ra & (rel_axis == k) & informative[rel_a] & informative[rel_b]
             rows += [F + rel_a[er]]
             cols += [F + rel_b[er]]
@@ -215,7 +216,7 @@ def register_frames(n_frames: int, obs_frame: np.ndarray, obs_track: np.ndarray,
                 cols += [np.full(len(fl), F + T)]
             r = np.concatenate(rows)
             c = np.concatenate(cols)
-            g = sp.coo_matrix((np.ones(len(r)), (r, c)), shape=(F + T + 1, F + T + 1))
+            g = sp.coo_matrix((np.ones(len(r)), (r, c)), shape=(F + T + 2, F + T + 2))
             labels.append(connected_components(g, directed=False)[1][:F])
         lab = np.stack(labels, axis=1)
         cls_id, inv = np.unique(lab[kept], axis=0, return_inverse=True)
@@ -446,7 +447,8 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
         bridge = config.motion_bridge_deg if config.motion_weight > 0 else 0.0
         registered, reasons = register_frames(F, o_frame, o_track, n_int, axis, r_a, r_b, r_k, f_t,
                                               config.min_view_eig, turned_deg=turned_degrees(pre.R_wc),
-                                              bridge_deg=bridge, manhattan=M)
+                                              bridge_deg=bridge, manhattan=M,
+                                              spin_links=config.spin_links and config.spin_weight > 0)
 
     # --- the system over the registered frames (the only unknowns) -------------------------
     o_sel = registered[o_frame]

@@ -330,8 +330,9 @@ def test_bridging_reconnects_tracks_over_missed_frames(slow_pan):
     cap, pre = slow_pan
     dropped = (pre.segments.frame % 3) == 1  # every third frame's segments are missing
     pre_d = dataclasses.replace(pre, labels=np.where(dropped, -1, pre.labels).astype(np.int8))
-    base = with_overrides(Config(), tracking={"axis_angle_deg": 1.5, "bridge_angle_deg": 0.0})
-    bridged = with_overrides(Config(), tracking={"axis_angle_deg": 1.5, "bridge_angle_deg": 4.0})
+    # fragments are not joined here (merge_gap_frames: tested below), so the bridging alone is measured
+    base = with_overrides(Config(), tracking={"axis_angle_deg": 1.5, "bridge_angle_deg": 0.0, "merge_gap_frames": 0})
+    bridged = with_overrides(Config(), tracking={"axis_angle_deg": 1.5, "bridge_angle_deg": 4.0, "merge_gap_frames": 0})
     ev0 = evaluate(cap, pre_d, track_lines(cap, pre_d, base), gt_px=1.5)
     tracks = track_lines(cap, pre_d, bridged)
     ev1 = evaluate(cap, pre_d, tracks, gt_px=1.5)

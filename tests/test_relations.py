@@ -231,7 +231,9 @@ def real_capture(tmp_path_factory):
 def test_real_capture_precision_with_oracle_normals(real_capture):
     bench, res, g, nm = real_capture
     pre, tracks, cam = res.preprocessed, res.tracks, res.capture.camera
-    assert np.mean(g.track_edge >= 0) > 0.9  # the judge knows nearly every track's GT edge (measured 0.96)
+    # the judge knows nearly every track's GT edge (measured 0.96 with the fragments of a line as separate tracks,
+    # 0.88 with them joined: tracking.merge_gap_frames leaves the texture tracks a larger share)
+    assert np.mean(g.track_edge >= 0) > 0.85
     truth = bench.gt_relation_sets(pre, tracks, g, 0.02)
     # the judge agrees with the GT relation sets it builds (consistency of the two GT views)
     for kind, rows in truth.items():
