@@ -196,6 +196,10 @@ class LinearConfig:
     # track joins are placed by the model. Off: registered bedroom/office 18/50 -> 58/81 %, but centre err.
     # 0.70/0.61 -> 3.47/2.92 % with two of fifteen captures worse than 10 % (also on swaying spins)
     spin_links: bool = False
+    # ... and it holds the height of a frame whose lines do not (register_frames; with graph.spin_height). Off:
+    # registered bedroom/office 23/78 -> 40/84 % (swaying spins 29/52 -> 35/84 %, kept-back seeds 41/82 ->
+    # 65/88 %), but on the kept-back captures three of fifteen end worse than 10 % (none without)
+    spin_height: bool = False
     # floor relations whose line lies less than this share as deep below the cameras as the deepest floor
     # candidates (a first solve without them tells) are furniture tops, dropped (0: keep all, the paper)
     floor_verify_ratio: float = 0.85
@@ -253,6 +257,7 @@ class GraphConfig:
     spin_robust: str = "huber"  # ... its kernel (k = robust_k)
     spin_knot_deg: float = 90.0  # ... the stand point is interpolated between knots this turn apart (0: one stand point)
     spin_walk_sigma_m: float = 0.05  # ... std of the stand point's step between neighbouring knots (m)
+    spin_height: bool = False  # ... holds the height of a frame whose lines do not (determinacy; see linear.spin_height)
     reject_sigma: float = 5.0  # drop relations whose residual exceeds this many sigmas, then resolve
     incremental_batch: int | None = None  # frames per batch for incremental solves
     incremental_final_solve: bool = True  # after the last batch, solve everything once from the linear solution

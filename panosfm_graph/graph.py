@@ -646,7 +646,7 @@ def focal_sigma(pre: Preprocessed, relations: Relations, prob: _Problem, R_wc: n
 
 def determinacy(pre: Preprocessed, relations: Relations, prob: _Problem, rel_used: np.ndarray, taylor: np.ndarray,
                 R_wc: np.ndarray, centers: np.ndarray, K: np.ndarray, config: GraphConfig,
-                floor_h: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+                floor_h: float = 0.0, center_prior: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Returns (line std (T,) m, centre std (F,) m): how well each line's position and each centre are determined.
 
     Gauss-Newton information of one variable with all others held: a
@@ -657,7 +657,9 @@ def determinacy(pre: Preprocessed, relations: Relations, prob: _Problem, rel_use
     (robust weight at its residual) adds ``n n^T / sigma^2`` to its lines.
     The std is ``1 / sqrt`` of the smallest eigenvalue (for lines, in the plane
     normal to the line's direction: the position along it is not a quantity).
-    Frames without observations get inf.
+    ``center_prior`` (3, 3), when given, is added to every observed frame's
+    information (the spin prior's hold on the height). Frames without
+    observations get inf.
     """
     T, F = len(prob.directions), len(centers)
     H_l = np.zeros((T, 3, 3))
@@ -688,6 +690,10 @@ def determinacy(pre: Preprocessed, relations: Relations, prob: _Problem, rel_use
     e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
     B = np.stack([e1, np.cross(A, e1)], axis=2)  # (T, 3, 2) basis of the plane normal to A
     lam_l = np.linalg.eigvalsh(np.einsum("tia,tij,tjb->tab", B, H_l, B))[:, 0]
+    if center_prior is not None:
+        seen_f = np.zeros(F, bool)
+        seen_f[prob.obs_frame] = True
+        H_c[seen_f] += center_prior
     lam_c = np.linalg.eigvalsh(H_c)[:, 0]
     with np.errstate(divide="ignore"):
         return 1.0 / np.sqrt(np.maximum(lam_l, 0.0)), 1.0 / np.sqrt(np.maximum(lam_c, 0.0))
@@ -711,8 +717,12 @@ def _mark_undetermined(pre: Preprocessed, relations: Relations, prob: _Problem, 
     keep = line_ok[prob.obs_track] & config.reprojection  # without reprojection factors no centre is determined
     sub = dataclasses.replace(prob, obs_seg=prob.obs_seg[keep], obs_track=prob.obs_track[keep],
                               obs_frame=prob.obs_frame[keep])
+    prior = None
+    if config.spin_sigma_m > 0 and config.spin_height:  # the spin prior holds the height
+        up = pre.manhattan.directions[2]
+        prior = np.outer(up, up) / (config.spin_sigma_m * config.spin_vertical_ratio) ** 2
     _, center_sig = determinacy(pre, relations, sub, np.zeros(len(rel_mask), bool), sol.lines.taylor, sol.R_wc,
-                                sol.centers, sol.camera.K, config, h)
+                                sol.centers, sol.camera.K, config, h, center_prior=prior)
     frame_ok = np.zeros(len(center_sig), bool)
     frame_ok[prob.frames] = center_sig[prob.frames] <= config.max_center_sigma_m
     registered = sol.registered & frame_ok

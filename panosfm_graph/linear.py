@@ -165,7 +165,8 @@ def register_frames(n_frames: int, obs_frame: np.ndarray, obs_track: np.ndarray,
                     track_axis: np.ndarray, rel_a: np.ndarray, rel_b: np.ndarray, rel_axis: np.ndarray,
                     floor_track: np.ndarray, min_view_eig: float, max_iterations: int = 10,
                     turned_deg: np.ndarray | None = None, bridge_deg: float = 0.0,
-                    manhattan: np.ndarray = np.eye(3), spin_links: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                    manhattan: np.ndarray = np.eye(3), spin_links: bool = False,
+                    spin_height: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((F,) bool frames whose translation the linear solve can determine, (F,) int8 reasons) (paper §3.3).
 
     ``reasons`` index :data:`UNREGISTERED_REASONS` (0 for a registered frame):
@@ -199,6 +200,8 @@ def register_frames(n_frames: int, obs_frame: np.ndarray, obs_track: np.ndarray,
         scatter = np.zeros((F, 3, 3))
         np.add.at(scatter, obs_frame[oi], obs_normal[oi, :, None] * obs_normal[oi, None, :])
         weak = weak_axes(scatter, min_view_eig, manhattan)
+        if spin_height:  # the spin model holds the phone's height: the vertical needs no line
+            weak[:, _VERTICAL] = False
         anchor = kept & (np.bincount(obs_frame[oi], minlength=F) > 0) & ~weak.any(axis=1)
         link_a, link_b = motion_links(anchor, turned, bridge_deg)
         hub = np.flatnonzero(anchor) if spin_links else np.zeros(0, int)  # the spin model ties every anchor
@@ -214,6 +217,10 @@ def register_frames(n_frames: int, obs_frame: np.ndarray, obs_track: np.ndarray,
                 fl = floor_track[live[floor_track] & informative[floor_track]]
                 rows += [F + fl]
                 cols += [np.full(len(fl), F + T)]
+                if spin_height:
+                    up = np.flatnonzero(kept)
+                    rows += [up]
+                    cols += [np.full(len(up), F + T + 1)]
             r = np.concatenate(rows)
             c = np.concatenate(cols)
             g = sp.coo_matrix((np.ones(len(r)), (r, c)), shape=(F + T + 2, F + T + 2))
@@ -448,7 +455,8 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
         registered, reasons = register_frames(F, o_frame, o_track, n_int, axis, r_a, r_b, r_k, f_t,
                                               config.min_view_eig, turned_deg=turned_degrees(pre.R_wc),
                                               bridge_deg=bridge, manhattan=M,
-                                              spin_links=config.spin_links and config.spin_weight > 0)
+                                              spin_links=config.spin_links and config.spin_weight > 0,
+                                              spin_height=config.spin_height and config.spin_weight > 0)
 
     # --- the system over the registered frames (the only unknowns) -------------------------
     o_sel = registered[o_frame]
