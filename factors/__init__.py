@@ -21,7 +21,14 @@ from factors.line_reprojection import (
     segment_residuals,
 )
 from factors.robust import noise_model, projection_noise, robust_kernel, robust_weight, sigma_from_weight
-from factors.spin_prior import horizontal_direction, spin_knots, spin_noise, spin_prior_error, spin_prior_factor
+from factors.spin_prior import (
+    horizontal_direction,
+    spin_knots,
+    spin_model_rows,
+    spin_noise,
+    spin_prior_error,
+    spin_prior_factor,
+)
 from factors.taylor_line import (
     interpretation_normal,
     line_extent,
@@ -38,7 +45,7 @@ __all__ = [
     "imu_noise", "imu_rotation_factor",
     "line_reprojection_error", "line_reprojection_factor", "segment_distances", "segment_residuals",
     "noise_model", "projection_noise", "robust_kernel", "robust_weight", "sigma_from_weight",
-    "horizontal_direction", "spin_knots", "spin_noise", "spin_prior_error", "spin_prior_factor",
+    "horizontal_direction", "spin_knots", "spin_model_rows", "spin_noise", "spin_prior_error", "spin_prior_factor",
     "interpretation_normal", "line_extent", "plucker", "project_line",
     "taylor_from_point_direction", "taylor_to_point_direction",
 ]

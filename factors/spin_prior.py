@@ -43,6 +43,44 @@ def spin_knots(turned_deg: np.ndarray, knot_deg: float) -> tuple[np.ndarray, np.
     return j, u - j, n_int + 1
 
 
+def spin_model_rows(h: np.ndarray, j: np.ndarray, alpha: np.ndarray,
+                    n_knots: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Returns the linear spin model as rows ``centre[c] - sum(vals * x[cols]) = 0`` (kind 0, 1) or ``sum(vals * x[cols]) = 0`` (kind 2).
+
+    The unknowns ``x`` are the knots (3 Manhattan coordinates each, ``3 j + k``)
+    then the arm (a, b) at ``3 n_knots``; for each of the ``n`` frames
+    (``h`` (n, 2) its horizontal viewing direction, ``j``/``alpha`` from
+    :func:`spin_knots`) two horizontal rows (kind 0) and one vertical row
+    (kind 1), then three random-walk rows per pair of neighbouring knots
+    (kind 2, ``S_{j+1} - S_j``). Returns (kind (R,), centre (R,): the index
+    ``3 i + k`` of the centre coordinate or -1, cols (R, 4), vals (R, 4)).
+    The linear solve and the bundle adjustment's initial fit use the same rows.
+    """
+    n, K = len(h), int(n_knots)
+    j1 = np.minimum(j + 1, K - 1)
+    kind, centre, cols, vals = [], [], [], []
+    for k in range(3):
+        centre.append(3 * np.arange(n) + k)
+        if k < 2:
+            kind.append(np.zeros(n, np.int8))
+            hp = (-h[:, 1], h[:, 0])[k]
+            cols.append(np.column_stack([3 * j + k, 3 * j1 + k, np.full(n, 3 * K), np.full(n, 3 * K + 1)]))
+            vals.append(np.column_stack([1.0 - alpha, alpha, h[:, k], hp]))
+        else:
+            kind.append(np.ones(n, np.int8))
+            cols.append(np.column_stack([3 * j + 2, 3 * j1 + 2, 3 * j + 2, 3 * j + 2]))
+            vals.append(np.column_stack([1.0 - alpha, alpha, np.zeros(n), np.zeros(n)]))
+    if K > 1:
+        kn = np.repeat(np.arange(K - 1), 3)
+        kk = np.tile(np.arange(3), K - 1)
+        zero = np.zeros(len(kn))
+        kind.append(np.full(len(kn), 2, np.int8))
+        centre.append(np.full(len(kn), -1))
+        cols.append(np.column_stack([3 * (kn + 1) + kk, 3 * kn + kk, 3 * kn + kk, 3 * kn + kk]))
+        vals.append(np.column_stack([np.ones(len(kn)), -np.ones(len(kn)), zero, zero]))
+    return np.concatenate(kind), np.concatenate(centre), np.concatenate(cols), np.concatenate(vals)
+
+
 def spin_prior_error(manhattan: np.ndarray, h: np.ndarray, alpha: float, this: gtsam.CustomFactor,
                      values: gtsam.Values, jacobians) -> np.ndarray:
     """Returns the 3-vector ``M (c - S) - [a h + b h_perp, 0]`` (m): the centre's offset from the spin circle.

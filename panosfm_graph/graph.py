@@ -255,32 +255,19 @@ def fit_spin(centers: np.ndarray, view_dirs: np.ndarray, manhattan: np.ndarray, 
              n_knots: int, walk_weight: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Returns (stand-point knots (K, 3) world, arm (a, b)): the least-squares spin circle through the centres.
 
-    The model of ``factors.spin_prior`` (knots ``j``/``alpha`` from
-    :func:`factors.spin_prior.spin_knots`), linear in the knots and (a, b);
+    The rows of :func:`factors.spin_prior.spin_model_rows` (knots ``j``/``alpha``
+    from :func:`factors.spin_prior.spin_knots`) with the centres given;
     neighbouring knots are tied with ``walk_weight`` (relative to a centre).
     """
     M = np.asarray(manhattan, dtype=np.float64)
-    cm = np.asarray(centers, dtype=np.float64) @ M.T
-    h = factors.horizontal_direction(M, view_dirs)
-    n, K = len(cm), int(n_knots)
-    j1 = np.minimum(j + 1, K - 1)
-    rows = np.arange(n)
-    A = np.zeros((3 * n + 3 * (K - 1), 3 * K + 2))
-    b = np.zeros(len(A))
-    for k in range(3):
-        r = 3 * rows + k
-        np.add.at(A, (r, 3 * j + k), 1.0 - alpha)
-        np.add.at(A, (r, 3 * j1 + k), alpha)
-        if k < 2:
-            A[r, 3 * K] = h[:, k]
-            A[r, 3 * K + 1] = (-h[:, 1], h[:, 0])[k]
-        b[r] = cm[:, k]
-    for jj in range(K - 1):
-        for k in range(3):
-            r = 3 * n + 3 * jj + k
-            A[r, 3 * (jj + 1) + k], A[r, 3 * jj + k] = walk_weight, -walk_weight
+    cm = (np.asarray(centers, dtype=np.float64) @ M.T).ravel()  # 3 i + k, as the rows' centre index
+    kind, centre, cols, vals = factors.spin_model_rows(factors.horizontal_direction(M, view_dirs), j, alpha, n_knots)
+    w = np.where(kind == 2, walk_weight, 1.0)
+    A = np.zeros((len(kind), 3 * int(n_knots) + 2))
+    np.add.at(A, (np.repeat(np.arange(len(kind)), cols.shape[1]), cols.ravel()), (vals * w[:, None]).ravel())
+    b = np.where(centre >= 0, cm[np.maximum(centre, 0)], 0.0)
     x = np.linalg.lstsq(A, b, rcond=None)[0]
-    return x[:3 * K].reshape(K, 3) @ M, x[3 * K:].copy()
+    return x[:3 * n_knots].reshape(-1, 3) @ M, x[3 * n_knots:].copy()
 
 
 def _dims(values: gtsam.Values) -> list[tuple[int, int]]:

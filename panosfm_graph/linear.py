@@ -756,42 +756,24 @@ def _spin_rows(frames: np.ndarray, fwd: np.ndarray, turned: np.ndarray, col0: in
     ``h_i`` the horizontal unit direction of frame i's optical axis (Manhattan coordinates) and
     ``(a, b)`` the arm's length times the cosine / sine of its fixed angle to the optical axis --
     linear in (T, S, a, b). ``S`` is interpolated by the turned angle between knots
-    ``spin_knot_deg`` apart (:func:`factors.spin_prior.spin_knots`). Rows:
-    ``w (T_i[k] - S_i[k] - a h_i[k] - b h_i^perp[k])`` for the two horizontal axes,
-    ``w_z (T_i[z] - S_i[z])`` (the phone's height is constant), and
+    ``spin_knot_deg`` apart (:func:`factors.spin_prior.spin_knots`). Rows
+    (:func:`factors.spin_prior.spin_model_rows`): ``w (T_i[k] - S_i[k] - a h_i[k] - b h_i^perp[k])``
+    for the two horizontal axes, ``w_z (T_i[z] - S_i[z])`` (the phone's height is constant), and
     ``w_walk (S_{j+1} - S_j)`` between neighbouring knots. Columns from ``col0``: the knots
     (3 each), then a, b. One shared arm binds the scale of every part of the sweep.
     """
-    from factors.spin_prior import horizontal_direction, spin_knots
+    from factors.spin_prior import horizontal_direction, spin_knots, spin_model_rows
 
     h = horizontal_direction(np.eye(3), np.asarray(fwd, dtype=np.float64)[frames])
-    hp = np.column_stack([-h[:, 1], h[:, 0]])
     j, alpha, n_knots = spin_knots(np.asarray(turned, dtype=np.float64)[frames], config.spin_knot_deg)
-    j1 = np.minimum(j + 1, n_knots - 1)
-    n = len(frames)
-    idx = np.arange(n)
-    col_a = col0 + 3 * n_knots
-    w, wz = config.spin_weight, config.spin_weight * config.spin_vertical_ratio
-    cols, vals = [], []
-    for k in range(3):
-        if k < 2:
-            c = [3 * idx + k, col0 + 3 * j + k, col0 + 3 * j1 + k, np.full(n, col_a), np.full(n, col_a + 1)]
-            v = [np.ones(n), alpha - 1.0, -alpha, -h[:, k], -hp[:, k]]
-            ww = w
-        else:
-            c = [3 * idx + 2, col0 + 3 * j + 2, col0 + 3 * j1 + 2, col0 + 3 * j + 2, col0 + 3 * j + 2]
-            v = [np.ones(n), alpha - 1.0, -alpha, np.zeros(n), np.zeros(n)]
-            ww = wz
-        cols.append(np.column_stack(c))
-        vals.append(ww * np.column_stack(v))
-    if n_knots > 1:
-        kn = np.repeat(np.arange(n_knots - 1), 3)
-        kk = np.tile(np.arange(3), n_knots - 1)
-        ww = config.spin_weight * config.spin_walk_ratio
-        zero = np.zeros(len(kn))
-        cols.append(np.column_stack([col0 + 3 * (kn + 1) + kk, col0 + 3 * kn + kk] + [col0 + 3 * kn + kk] * 3))
-        vals.append(np.column_stack([np.full(len(kn), ww), np.full(len(kn), -ww), zero, zero, zero]))
-    return np.concatenate(cols), np.concatenate(vals), 3 * n_knots + 2
+    kind, centre, cols, vals = spin_model_rows(h, j, alpha, n_knots)
+    w = config.spin_weight * np.array([1.0, config.spin_vertical_ratio, config.spin_walk_ratio])[kind]
+    has_c = centre >= 0
+    # the centre's column (tau: 3 x registered-frame index + axis, as ``centre``) or a zero entry
+    c0 = np.where(has_c, centre, col0)
+    cols = np.column_stack([c0, col0 + cols])
+    vals = np.column_stack([np.where(has_c, 1.0, 0.0), -vals]) * w[:, None]
+    return cols, vals, 3 * n_knots + 2
 
 
 def _active_set(assemble, full_x, depths, pinned, robust_w, not_ref, lam_min, h0, max_iterations=30):
