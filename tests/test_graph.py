@@ -9,6 +9,7 @@ import pytest
 import factors
 from panosfm_graph.config import GraphConfig
 from panosfm_graph.data import Solution
+from panosfm_graph.evaluate import umeyama
 from panosfm_graph.geometry import rotation_angle_deg
 from panosfm_graph.graph import bundle_adjust, bundle_adjust_incremental, line_extents
 from panosfm_graph.synth.problem import make_problem
@@ -309,3 +310,40 @@ def _centre_error(p, sol):
     from test_linear import _centre_error as err
 
     return err(p, sol)
+
+
+def test_floor_is_moved_below_the_deepest_horizontal_line():
+    """The floor relations are all on furniture tops (0.3-1.0 m): the metric model comes out too large. With
+    ``floor_below_lines_min_obs`` the floor goes down to the deepest well-observed horizontal line (here a
+    line on the true floor), and the camera height then gives the true scale."""
+    from panosfm_graph.config import LinearConfig
+    from panosfm_graph.data import FLOOR, Relations
+    from panosfm_graph.linear import solve_linear
+
+    p = make_problem("living", 48, (480, 270), seed=0, pixel_noise_px=0.3)
+    r = p.relations
+    floor_z = p.scene.to_world(np.zeros(3))[2]
+    room_z = (p.gt_track_lines[:, 2] + p.gt_track_lines[:, 5]) / 2 - floor_z
+    horizontal = p.tracks.axis != 2
+    tops = np.flatnonzero(horizontal & (room_z > 0.3) & (room_z < 1.0))
+    assert len(tops) >= 3 and np.any(horizontal & (np.abs(room_z) < 0.02))  # a floor line is in view
+    keep = r.kind != FLOOR  # the true floor relations go; furniture tops take their place
+    rel = Relations(np.concatenate([r.kind[keep], np.full(len(tops), FLOOR, np.int8)]),
+                    np.concatenate([r.track_a[keep], tops.astype(np.int32)]),
+                    np.concatenate([r.track_b[keep], np.full(len(tops), -1, np.int32)]),
+                    np.concatenate([r.normal_axis[keep], np.full(len(tops), 2, np.int8)]),
+                    np.concatenate([r.support[keep], np.ones(len(tops), np.int32)]))
+    H = float(p.gt_centers[:, 2].mean() - floor_z)
+    lin = solve_linear(p.preprocessed, p.tracks, rel, p.camera,
+                       LinearConfig(camera_height_m=H, floor_verify_ratio=0.0, tracks_first=False))
+    scale = {}
+    for n in (0, 3):
+        sol = bundle_adjust(p.preprocessed, p.tracks, rel, lin, dataclasses.replace(FAST, floor_below_lines_min_obs=n))
+        reg = sol.registered
+        s, _, _ = umeyama(sol.centers[reg], p.gt_centers[reg])
+        scale[n] = s
+        if n:
+            assert sol.residuals["floor_lowered_by"] > 1.2
+            assert room_z[sol.residuals["floor_from_line"]] < 0.05  # the line it went down to is on the floor
+    assert scale[0] < 0.8, scale  # too large a model: the desk is taken for the floor
+    assert abs(scale[3] - 1) < 0.05, scale
