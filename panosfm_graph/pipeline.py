@@ -343,8 +343,7 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
         "relations": (result.relations.counts() if result.relations is not None
                       else {k: 0 for k in RELATION_NAMES}),
         "metric": bool(sol.metric) if sol is not None else False,
-        "scale": ("metric (camera height %.3f m, floor from %d line%s)"
-                  % (config.linear.camera_height_m, n_floor, "" if n_floor == 1 else "s")
+        "scale": (_scale_text(config.linear.camera_height_m, n_floor, sol.residuals)
                   if sol is not None and sol.metric else "arbitrary"),
         "residuals": {"linear": linear_res,
                       "bundle_adjust": (sol.residuals if sol is not None and sol is not result.linear
@@ -361,6 +360,14 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
                                                 for b in result.batches]
     summary["seconds"]["total"] = round(time.perf_counter() - t_start, 3)
     return summary
+
+
+def _scale_text(camera_height_m: float, n_floor: int, residuals: dict) -> str:
+    """Returns how the metric scale was set, for ``summary.json`` and ``panosfm run``."""
+    lowered = float(residuals.get("floor_lowered_by", 1.0) or 1.0) if isinstance(residuals, dict) else 1.0
+    source = (f"floor lowered to the deepest horizontal line (model scaled by 1/{lowered:.2f})" if lowered > 1.0
+              else f"floor from {n_floor} line{'' if n_floor == 1 else 's'}")
+    return f"metric (camera height {camera_height_m:.3f} m, {source})"
 
 
 def _export(tmp: Path, capture: Capture, segments: Segments, result: RunResult, summary: dict, *,
