@@ -542,13 +542,12 @@ def _floor_below_lines(sol: Solution, relations: Relations, prob: _Problem, manh
     keeps the camera height the distance from the cameras to the floor. ``residuals``:
     ``floor_lowered_by`` (the factor, 1 when no line lies below), ``floor_from_line`` (its track).
     """
-    fl = prob.rel_idx[relations.kind[prob.rel_idx] == FLOOR]
+    up = _floor_normal(relations, prob, manhattan)
     reg = sol.registered
     h = residuals.get("floor_height")
     residuals["floor_lowered_by"] = 1.0
-    if not len(fl) or h is None or not np.any(reg):
+    if up is None or h is None or not np.any(reg):
         return sol
-    up = manhattan[int(np.bincount(relations.normal_axis[fl].astype(int)).argmax())]
     cam = float(np.mean(sol.centers[reg] @ up))
     d_floor = cam - float(h)
     n_obs = np.bincount(prob.obs_track, minlength=len(sol.lines.valid))
@@ -564,8 +563,7 @@ def _floor_below_lines(sol: Solution, relations: Relations, prob: _Problem, manh
     residuals["floor_lowered_by"] = float(1.0 / f)
     residuals["floor_from_line"] = int(np.flatnonzero(ok)[k])
     residuals["floor_height"] = float(cam * f - d_floor)
-    lines = dataclasses.replace(sol.lines, taylor=sol.lines.taylor * f, extent=sol.lines.extent * f)
-    return dataclasses.replace(sol, centers=sol.centers * f, lines=lines)
+    return _scaled(sol, f)
 
 
 def _verify_relations(pre: Preprocessed, relations: Relations, prob: _Problem, R_wc: np.ndarray, K: np.ndarray,
@@ -625,13 +623,12 @@ def _keep_camera_height(sol: Solution, initial: Solution, relations: Relations, 
     reprojection costs, so rescaling restores the linear solve's metric definition (the floor
     ``camera_height_m`` below the mean camera height) exactly.
     """
-    fl = prob.rel_idx[relations.kind[prob.rel_idx] == FLOOR]
+    up = _floor_normal(relations, prob, manhattan)
     h1 = residuals.get("floor_height")
     h0 = initial.residuals.get("floor_height") if isinstance(initial.residuals, dict) else None
     reg = sol.registered
-    if not len(fl) or h1 is None or h0 is None or not np.any(reg):
+    if up is None or h1 is None or h0 is None or not np.any(reg):
         return sol
-    up = manhattan[int(np.bincount(relations.normal_axis[fl].astype(int)).argmax())]
     d0 = float(np.mean(initial.centers[initial.registered] @ up)) - float(h0)
     d1 = float(np.mean(sol.centers[reg] @ up)) - float(h1)
     s = d0 / d1 if d1 > 0 and d0 > 0 else 1.0
@@ -639,6 +636,17 @@ def _keep_camera_height(sol: Solution, initial: Solution, relations: Relations, 
     if not np.isfinite(s) or abs(s - 1.0) < 1e-9:
         return sol
     residuals["floor_height"] = float(h1) * s
+    return _scaled(sol, s)
+
+
+def _floor_normal(relations: Relations, prob: _Problem, manhattan: np.ndarray) -> np.ndarray | None:
+    """Returns the floor relations' (majority) normal, the up direction, or None without floor relations."""
+    fl = prob.rel_idx[relations.kind[prob.rel_idx] == FLOOR]
+    return manhattan[int(np.bincount(relations.normal_axis[fl].astype(int)).argmax())] if len(fl) else None
+
+
+def _scaled(sol: Solution, s: float) -> Solution:
+    """Returns ``sol`` with centres and lines scaled by ``s`` about the origin (a change of the scale gauge)."""
     lines = dataclasses.replace(sol.lines, taylor=sol.lines.taylor * s, extent=sol.lines.extent * s)
     return dataclasses.replace(sol, centers=sol.centers * s, lines=lines)
 
