@@ -46,7 +46,7 @@ class SpinParams:
     roll_deg: tuple[float, float, float, float]
     duration_s: float  # time of the last frame
     sway_m: float = 0.0  # how far from an ideal circle the spin is (module docstring)
-    sway: tuple = ()  # (4, 3, 2) amplitudes and (4, 3) phases: stand x, stand y, arm length, arm angle
+    sway: tuple = ()  # (amplitudes (4, 3), phases (4, 3)): three harmonics of stand x, stand y, arm length, arm angle
 
 
 _SWAY_CYCLES = np.array([0.55, 1.35, 2.2])  # cycles per sweep of the sway's three harmonics (not periodic)
