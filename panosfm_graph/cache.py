@@ -5,6 +5,11 @@ identity, its part of the config, and the hashes of the stages before it), so
 ``--resume`` picks up every stage whose inputs did not change and a changed
 setting reruns only the stages it affects. Files are written to a temporary
 name and renamed, so a killed run never leaves a half-written cache entry.
+
+The code is part of the key too: each stage's key hashes the source files of
+the modules it runs (:data:`STAGE_SOURCES`, :func:`stage_code_hash`), so
+``--resume`` after an edit (or an upgrade) reruns the edited stage and every
+stage after it instead of returning what the old code computed.
 """
 from __future__ import annotations
 
@@ -15,6 +20,8 @@ import os
 import tempfile
 import typing
 from pathlib import Path
+import functools
+import importlib.util
 from typing import Any
 
 import numpy as np
@@ -22,6 +29,45 @@ import numpy as np
 from . import data as _data
 
 _SEP = "__"
+
+# modules (a package: all its files) whose source is part of each stage's key; a stage's key chains the
+# keys before it, so the modules of earlier stages count for the later ones too. tests/test_cache.py
+# checks that every module a stage imports (of these two packages) is listed for it or an earlier stage
+STAGE_SOURCES: dict[str, tuple[str, ...]] = {
+    "detect": ("panosfm_graph.__init__", "panosfm_graph.pipeline", "panosfm_graph.capture", "panosfm_graph.config", "panosfm_graph.data",
+               "panosfm_graph.cache", "panosfm_graph.errors", "panosfm_graph.geometry", "panosfm_graph.parallel",
+               "panosfm_graph.progress", "panosfm_graph.thumbnails", "panosfm_graph.lines.detect"),
+    "preprocess": ("panosfm_graph.lines", "panosfm_graph.lines.manhattan", "panosfm_graph.lines.rotations"),
+    "track": ("panosfm_graph.lines.tracking",),
+    "normals": ("panosfm_graph.normals",),
+    "relations": ("panosfm_graph.relations",),
+    "linear": ("panosfm_graph.linear", "factors"),
+    "bundle_adjust": ("panosfm_graph.graph", "factors"),
+}
+
+
+def module_files(name: str) -> list[Path]:
+    """Returns the source files of module ``name``: one file, or every ``.py`` file of a package's folder.
+
+    ``"pkg.__init__"`` names a package's ``__init__.py`` alone.
+    """
+    init = name.endswith(".__init__")
+    spec = importlib.util.find_spec(name[: -len(".__init__")] if init else name)
+    if spec is None or spec.origin is None:
+        raise ModuleNotFoundError(name)
+    path = Path(spec.origin)
+    return sorted(path.parent.glob("*.py")) if path.name == "__init__.py" and not init else [path]
+
+
+@functools.lru_cache(maxsize=None)
+def stage_code_hash(stage: str) -> str:
+    """Returns a short hex digest of the source of the modules stage ``stage`` runs (:data:`STAGE_SOURCES`)."""
+    h = hashlib.sha1()
+    for name in STAGE_SOURCES[stage]:
+        for path in module_files(name):
+            h.update(path.name.encode())
+            h.update(path.read_bytes())
+    return h.hexdigest()[:16]
 
 
 def stable_hash(*parts: Any) -> str:

@@ -27,7 +27,7 @@ from typing import Any, Callable
 import numpy as np
 
 from . import __version__
-from .cache import StageCache, stable_hash
+from .cache import StageCache, stable_hash, stage_code_hash
 from .config import Config
 from .data import (RELATION_NAMES, Capture, NormalMaps, Preprocessed, Relations, Segments, Solution,
                    Thumbnails, Tracks)
@@ -164,8 +164,9 @@ def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config =
     def done(name: str) -> bool:
         return stop_after == name
 
-    # the version is part of every key: a cache never outlives the code that wrote it
-    key = stable_hash(__version__, capture_identity(capture), config.capture, config.detect)
+    # the version and each stage's source are part of its key: a cache never outlives the code that wrote it
+    code = stage_code_hash
+    key = stable_hash(__version__, code("detect"), capture_identity(capture), config.capture, config.detect)
     thumbs: list[bytes] | None = [] if rerun else None
     segments = _cached(cache, "detect", key, Segments, lambda: _detect(capture, config, thumbs), timings, resumed)
     if thumbs:  # made while detection decoded the frames; the rerun timeline shows them
@@ -174,33 +175,33 @@ def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config =
     elif rerun:
         result.thumbnails = cache.load("thumbnails", key, Thumbnails)
     if not done("detect"):
-        key = stable_hash(key, config.manhattan, config.rotation)
+        key = stable_hash(key, code("preprocess"), config.manhattan, config.rotation)
         pre = _cached(cache, "preprocess", key, Preprocessed,
                       lambda: _preprocess(capture, segments, config), timings, resumed)
         result.preprocessed = pre
         key_pre = key
         if not done("preprocess"):
-            key = stable_hash(key_pre, config.tracking)
+            key = stable_hash(key_pre, code("track"), config.tracking)
             result.tracks = _cached(cache, "track", key, Tracks,
                                     lambda: _track(capture, pre, config), timings, resumed)
             key_tracks = key
         if result.tracks is not None and not done("track"):
-            key_normals = stable_hash(key_pre, config.normals, _normal_model_identity(config))
+            key_normals = stable_hash(key_pre, code("normals"), config.normals, _normal_model_identity(config))
             normals = _cached(cache, "normals", key_normals, NormalMaps,
                               lambda: _normals(capture, pre, config), timings, resumed)
-            key = stable_hash(key_tracks, key_normals, config.relations)
+            key = stable_hash(key_tracks, key_normals, code("relations"), config.relations)
             result.relations = _cached(cache, "relations", key, Relations,
                                        lambda: _relations(capture, pre, result.tracks, normals, config),
                                        timings, resumed)
             del normals
         if result.relations is not None and not done("relations"):
-            key = stable_hash(key, config.linear)
+            key = stable_hash(key, code("linear"), config.linear)
             result.linear = _cached(cache, "linear", key, Solution,
                                     lambda: _linear(capture, pre, result.tracks, result.relations, config),
                                     timings, resumed)
             result.solution = result.linear
         if result.linear is not None and not done("linear"):
-            key = stable_hash(key, config.graph)
+            key = stable_hash(key, code("bundle_adjust"), config.graph)
             result.solution = _cached(
                 cache, "bundle_adjust", key, Solution,
                 lambda: _bundle_adjust(pre, result, config, on_batch), timings, resumed)

@@ -412,6 +412,20 @@ def test_changed_settings_rerun_only_what_they_affect(spin, previous, baseline):
     check_result(previous, spin)
 
 
+def test_edited_code_reruns_its_stage_and_the_later_ones(spin, previous, monkeypatch):
+    """--resume after an edit of linear.py (the same version number) must not return the old code's result."""
+    from panosfm_graph import pipeline
+    from panosfm_graph.cache import stage_code_hash
+    from panosfm_graph.config import Config, with_overrides
+
+    base = with_overrides(Config(), normals={"source": "orientation-map"})
+    edited = {"linear": "an edited linear.py"}
+    monkeypatch.setattr(pipeline, "stage_code_hash", lambda stage: edited.get(stage) or stage_code_hash(stage))
+    res = pipeline.run_pipeline(spin, previous, base, resume=True, rerun=False)
+    assert res.summary["resumed_stages"] == ["detect", "preprocess", "track", "normals", "relations"]
+    check_result(previous, spin)
+
+
 @pytest.mark.slow
 def test_changed_detection_setting_reruns_everything(spin, previous):
     from panosfm_graph.config import Config, with_overrides
