@@ -22,6 +22,7 @@ import errno
 import json
 import logging
 import sys
+import typing
 from pathlib import Path
 
 from .config import Config, with_overrides
@@ -54,6 +55,43 @@ def _add_config_flags(p: argparse.ArgumentParser) -> None:
                    help="any Config field, e.g. --set relations.floor=False --set graph.robust=cauchy")
 
 
+_TRUE, _FALSE = ("true", "1", "yes", "on"), ("false", "0", "no", "off")
+
+
+def setting_value(section: object, field: str, raw: str, key: str | None = None) -> object:
+    """Returns ``raw`` (the text of ``--set SECTION.FIELD=raw``) as the type of that Config field.
+
+    Booleans take true/false, yes/no, on/off, 1/0 in any case (``false`` must never become the truthy
+    string "false"); ``none`` sets an optional field to None; anything that does not parse as the
+    field's type is an :class:`InputError`.
+    """
+    hint = typing.get_type_hints(type(section))[field]
+    args = [a for a in typing.get_args(hint) if a is not type(None)]
+    optional = type(None) in typing.get_args(hint)
+    if optional and raw.strip().lower() in ("none", "null"):
+        return None
+    kind = args[0] if optional and len(args) == 1 else hint
+    text = raw.strip()
+    try:
+        if kind is bool:
+            if text.lower() in _TRUE + _FALSE:
+                return text.lower() in _TRUE
+            raise ValueError
+        if kind is int:
+            return int(text)
+        if kind is float:
+            return float(text)
+        if kind is str:
+            return raw
+        value = ast.literal_eval(text)
+        if typing.get_origin(kind) is tuple:
+            value = tuple(value) if isinstance(value, (list, tuple)) else (value,)
+        return value
+    except (ValueError, SyntaxError, TypeError):
+        name = getattr(kind, "__name__", str(kind))
+        raise InputError(f"--set {key or field}={raw}: expected a value of type {name}") from None
+
+
 def config_from_args(args: argparse.Namespace, base: Config | None = None) -> Config:
     """Returns the Config described by the CLI flags (``--set`` last, so it wins)."""
     cfg = base or Config()
@@ -77,11 +115,7 @@ def config_from_args(args: argparse.Namespace, base: Config | None = None) -> Co
         section, field = key.split(".", 1)
         if not hasattr(cfg, section) or not hasattr(getattr(cfg, section), field):
             raise InputError(f"--set {item!r}: no setting {key!r} (see summary.json's config for the names)")
-        try:
-            value = ast.literal_eval(raw)
-        except (ValueError, SyntaxError):
-            value = raw
-        put(section, field, value)
+        put(section, field, setting_value(getattr(cfg, section), field, raw, key))
     try:
         return with_overrides(cfg, **sections)
     except TypeError as exc:

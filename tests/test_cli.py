@@ -17,7 +17,20 @@ def test_flags_map_onto_config():
     assert cfg.graph.incremental_batch == 25
 
 
-@pytest.mark.parametrize("bad", ["relations.nope=1", "floor=False", "nosection.x=1"])
+def test_set_values_take_the_fields_type():
+    """``false`` is False, not the truthy string "false"; numbers, None and tuples parse as their field."""
+    sets = ["relations.parallel=false", "relations.floor=No", "graph.verify_relations=TRUE", "graph.max_iterations=7",
+            "graph.reject_sigma=4", "linear.camera_height_m=none", "graph.phases=(1, 2)", "normals.source=oracle"]
+    args = build_parser().parse_args(["run", "cap", "out", *[a for s in sets for a in ("--set", s)]])
+    cfg = config_from_args(args)
+    assert cfg.relations.parallel is False and cfg.relations.floor is False and cfg.graph.verify_relations is True
+    assert cfg.graph.max_iterations == 7 and isinstance(cfg.graph.max_iterations, int)
+    assert cfg.graph.reject_sigma == 4.0 and isinstance(cfg.graph.reject_sigma, float)
+    assert cfg.linear.camera_height_m is None and cfg.graph.phases == (1, 2) and cfg.normals.source == "oracle"
+
+
+@pytest.mark.parametrize("bad", ["relations.nope=1", "floor=False", "nosection.x=1", "relations.parallel=maybe",
+                                 "graph.max_iterations=lots", "linear.min_depth_m=deep"])
 def test_bad_set_is_exit_2(bad, tmp_path, capsys):
     code = main(["run", str(tmp_path / "cap"), str(tmp_path / "out"), "--set", bad])
     err = capsys.readouterr().err.strip().splitlines()
