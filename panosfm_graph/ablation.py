@@ -29,9 +29,14 @@ def _coplanarity_set(cfg: Config, enabled: set[str]) -> Config:
     return with_overrides(cfg, relations=rel, graph=graph)
 
 
+def _enabled_coplanarities(cfg: Config) -> set[str]:
+    """Returns the coplanarity types both detected and used by the bundle adjustment in ``cfg``."""
+    return {k for k in COPLANARITIES if getattr(cfg.relations, k) and getattr(cfg.graph, f"coplanarity_{k}")}
+
+
 def _factor_off(cfg: Config, factor: str) -> Config:
     if factor in COPLANARITIES:
-        return _coplanarity_set(cfg, set(COPLANARITIES) - {factor})
+        return _coplanarity_set(cfg, _enabled_coplanarities(cfg) - {factor})
     if factor == "spin":  # the spin model in both solves (linear rows, BA factors)
         return with_overrides(cfg, linear={"spin_weight": 0.0}, graph={"spin_sigma_m": 0.0})
     key = {"colinearity": "colinearity", "reprojection": "reprojection", "imu": "imu_prior"}[factor]
@@ -48,9 +53,14 @@ def ablation_sets(sets: str | list[str], base: Config = Config()) -> dict[str, C
             "no coplanarity": _coplanarity_set(base, set()),
             "zero translation": with_overrides(base, linear={"zero_translation": True}),
         }
-    if isinstance(sets, str) and sets == "factors":
+    if isinstance(sets, str) and sets == "factors":  # each type of the default switched off (or on, if it is off)
         out = {"all": base}
-        out.update({f"no {f}": _factor_off(base, f) for f in FACTOR_TYPES})
+        on = _enabled_coplanarities(base)
+        for f in FACTOR_TYPES:
+            if f in COPLANARITIES and f not in on:
+                out[f"with {f}"] = _coplanarity_set(base, on | {f})
+            else:
+                out[f"no {f}"] = _factor_off(base, f)
         return out
     names = [s.strip() for s in (sets.split(",") if isinstance(sets, str) else sets) if s.strip()]
     unknown = [n for n in names if n not in FACTOR_TYPES]

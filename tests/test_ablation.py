@@ -10,6 +10,9 @@ def _on(cfg: Config) -> set[str]:
     return {k for k in COPLANARITIES if getattr(cfg.relations, k) and getattr(cfg.graph, f"coplanarity_{k}")}
 
 
+DEFAULT_ON = {"orthogonal", "junction", "floor"}  # parallel coplanarity is off by default (config.py)
+
+
 def test_paper_sets():
     sets = ablation_sets("paper")
     assert list(sets) == ["junction", "junction+orthogonal+parallel", "all four", "no coplanarity",
@@ -24,8 +27,10 @@ def test_paper_sets():
 
 def test_factor_sets_turn_off_one_each():
     sets = ablation_sets("factors")
-    assert _on(sets["all"]) == set(COPLANARITIES)
-    assert _on(sets["no floor"]) == set(COPLANARITIES) - {"floor"}
+    assert _on(sets["all"]) == DEFAULT_ON
+    assert _on(sets["no floor"]) == DEFAULT_ON - {"floor"}
+    assert _on(sets["with parallel"]) == set(COPLANARITIES) and "no parallel" not in sets
+    assert _on(ablation_sets("factors", ablation_sets("paper")["all four"])["no parallel"]) == DEFAULT_ON
     assert sets["no colinearity"].graph.colinearity is False
     assert sets["no reprojection"].graph.reprojection is False
     assert sets["no imu"].graph.imu_prior is False

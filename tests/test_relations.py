@@ -59,11 +59,11 @@ def _rows(rel, kind):
 
 def test_known_frame_relations():
     pre, tracks, nm = _frame(SEGS, LABELS, n_frames=2)
-    ours = detect_relations(pre, tracks, nm, CAM, RelationsConfig())
+    ours = detect_relations(pre, tracks, nm, CAM, RelationsConfig(parallel=True))
     # our crossed-quad rule: segment 0 lies between the z lines 1 and 2 (a poster edge here, but it could
     # as well be a cabinet's outline): that pair is dropped, the others stay
     assert (1, 2, 1) not in _rows(ours, PARALLEL) and (0, 1, 1) in _rows(ours, ORTHOGONAL)
-    rel = detect_relations(pre, tracks, nm, CAM, RelationsConfig(quad_clear_frac=0.0))  # the paper's test
+    rel = detect_relations(pre, tracks, nm, CAM, RelationsConfig(parallel=True, quad_clear_frac=0.0))  # the paper's test
     ortho, par = _rows(rel, ORTHOGONAL), _rows(rel, PARALLEL)
     assert (0, 1, 1) in ortho and (0, 2, 1) in ortho  # x and z lines on the y-facing wall
     assert (1, 2, 0) not in par and (1, 2, 1) in par  # parallel z lines: plane normal y, not x
@@ -84,16 +84,16 @@ PAPER_JUNCTION = dict(junction_corner_frac=0.0, junction_normals=False)  # the p
 def test_junction_threshold():
     segs = [(20, 20, 80, 20), (84, 24, 84, 70), (20, 30, 20, 90)]  # 0-1 ends 5.7 px apart; 0-2 10 px
     pre, tracks, nm = _frame(segs, [0, 2, 1])
-    rel = detect_relations(pre, tracks, nm, CAM, RelationsConfig(junction_dist_frac=0.08, **PAPER_JUNCTION))
+    rel = detect_relations(pre, tracks, nm, CAM, RelationsConfig(parallel=True, junction_dist_frac=0.08, **PAPER_JUNCTION))
     assert _rows(rel, JUNCTION) == {(0, 1, 1)}
-    rel = detect_relations(pre, tracks, nm, CAM, RelationsConfig(junction_dist_frac=0.12, **PAPER_JUNCTION))
+    rel = detect_relations(pre, tracks, nm, CAM, RelationsConfig(parallel=True, junction_dist_frac=0.12, **PAPER_JUNCTION))
     assert _rows(rel, JUNCTION) == {(0, 1, 1), (0, 2, 2)}
 
 
 def test_junction_min_support_drops_single_frame_junctions():
     """Option junction_min_support: a junction seen in fewer frames is dropped (the others stay)."""
     segs = [(20, 20, 80, 20), (84, 24, 84, 70)]  # ends 5.7 px apart
-    cfg = RelationsConfig(junction_dist_frac=0.08, **PAPER_JUNCTION)
+    cfg = RelationsConfig(parallel=True, junction_dist_frac=0.08, **PAPER_JUNCTION)
     for frames, need, found in ((1, 1, True), (1, 2, False), (2, 2, True)):
         pre, tracks, nm = _frame(segs, [0, 2], n_frames=frames)
         rel = detect_relations(pre, tracks, nm, CAM, dataclasses.replace(cfg, junction_min_support=need))
@@ -116,19 +116,19 @@ def test_junction_needs_an_l_corner_with_consistent_normals():
             out |= {(a + i, a + j, k) for i, j, k in _rows(detect_relations(pre, tracks, nm, CAM, cfg), JUNCTION)}
         return out
 
-    paper = found(RelationsConfig(**PAPER_JUNCTION))
+    paper = found(RelationsConfig(parallel=True, **PAPER_JUNCTION))
     assert {(0, 1, 1), (2, 3, 1)} <= paper
-    ours = found(RelationsConfig())
+    ours = found(RelationsConfig(parallel=True))
     assert (0, 1, 1) in ours
     assert (2, 3, 1) not in ours  # a gap: the L-corner test rejects it
     assert (4, 5, 2) not in ours  # normals say the inside of the L is the wall (y), not a floor (z)
-    no_normals = found(RelationsConfig(junction_normals=False))
+    no_normals = found(RelationsConfig(parallel=True, junction_normals=False))
     assert (2, 3, 1) not in no_normals and (0, 1, 1) in no_normals
 
 
 def test_switches_turn_relation_types_off():
     pre, tracks, nm = _frame(SEGS, LABELS)
-    rel = detect_relations(pre, tracks, nm, CAM, RelationsConfig(orthogonal=False, floor=False, quad_clear_frac=0.0))
+    rel = detect_relations(pre, tracks, nm, CAM, RelationsConfig(parallel=True, orthogonal=False, floor=False, quad_clear_frac=0.0))
     assert not np.any(rel.kind == ORTHOGONAL) and not np.any(rel.kind == FLOOR)
     assert np.any(rel.kind == PARALLEL)
 
@@ -136,7 +136,7 @@ def test_switches_turn_relation_types_off():
 def test_untracked_segments_are_ignored():
     pre, tracks, nm = _frame(SEGS, LABELS)
     tr = Tracks(np.where(np.arange(len(SEGS)) == 0, -1, tracks.track_of).astype(np.int32), tracks.axis)
-    rel = detect_relations(pre, tr, nm, CAM, RelationsConfig())
+    rel = detect_relations(pre, tr, nm, CAM, RelationsConfig(parallel=True))
     assert 0 not in set(rel.track_a.tolist()) | set(rel.track_b.tolist())
 
 
@@ -160,7 +160,7 @@ def spin():
 
 def test_oracle_relations_on_a_spin(spin):
     P, nm, L = spin
-    rel = detect_relations(P.preprocessed, P.tracks, nm, P.camera, RelationsConfig())
+    rel = detect_relations(P.preprocessed, P.tracks, nm, P.camera, RelationsConfig(parallel=True))
     ok = relations_true(rel, L, float(P.scene.room_min[2]), tol_m=0.05)
     for kind in (ORTHOGONAL, PARALLEL):
         m = rel.kind == kind
@@ -171,7 +171,7 @@ def test_oracle_relations_on_a_spin(spin):
     gm = P.relations.kind == JUNCTION
     truth = set(zip(P.relations.track_a[gm].tolist(), P.relations.track_b[gm].tolist(),
                     P.relations.normal_axis[gm].tolist()))
-    paper = detect_relations(P.preprocessed, P.tracks, nm, P.camera, RelationsConfig(**PAPER_JUNCTION))
+    paper = detect_relations(P.preprocessed, P.tracks, nm, P.camera, RelationsConfig(parallel=True, **PAPER_JUNCTION))
     assert len(truth & _rows(paper, JUNCTION)) >= 0.9 * len(truth)  # measured 0.98, precision 0.85
     # ... ours keeps those whose L is a visible face: measured precision 1.0, recall 0.57 (junctions of
     # faces hidden from the camera, e.g. the top of a box above eye level, are dropped)
@@ -191,10 +191,10 @@ def test_wrong_normals_reject_quad_coplanarities(spin, const):
         n = np.broadcast_to(np.asarray(const, float) @ P.preprocessed.manhattan.directions, nm.maps.shape)
     n = (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float16)
     bad = NormalMaps(n, np.ones_like(nm.valid), nm.scale, "wrong")
-    rel = detect_relations(P.preprocessed, P.tracks, bad, P.camera, RelationsConfig())
+    rel = detect_relations(P.preprocessed, P.tracks, bad, P.camera, RelationsConfig(parallel=True))
     assert np.sum((rel.kind == ORTHOGONAL) | (rel.kind == PARALLEL)) == 0
     assert np.sum(rel.kind == FLOOR) == 0
-    good = detect_relations(P.preprocessed, P.tracks, nm, P.camera, RelationsConfig())
+    good = detect_relations(P.preprocessed, P.tracks, nm, P.camera, RelationsConfig(parallel=True))
     assert np.sum(good.kind == ORTHOGONAL) > 10  # the same pairs are accepted with the right normals
 
 
@@ -243,8 +243,8 @@ def test_real_capture_precision_with_oracle_normals(real_capture):
                           np.ones(len(a), np.int32))
             sc, ok = bench.score(R, g, truth, 0.02)
             assert np.all(ok == 1), (kind, np.mean(ok == 1))
-    ours, _ = bench.score(detect_relations(pre, tracks, nm, cam, RelationsConfig()), g, truth, 0.02)
-    paper, _ = bench.score(detect_relations(pre, tracks, nm, cam, RelationsConfig(**PAPER_JUNCTION)), g, truth, 0.02)
+    ours, _ = bench.score(detect_relations(pre, tracks, nm, cam, RelationsConfig(parallel=True)), g, truth, 0.02)
+    paper, _ = bench.score(detect_relations(pre, tracks, nm, cam, RelationsConfig(parallel=True, **PAPER_JUNCTION)), g, truth, 0.02)
     # measured (living, 200 frames 320x180): orthogonal 0.79, parallel 0.89, junction 0.96 (paper's test 0.6x)
     assert ours["orthogonal"]["precision"] >= 0.7 and ours["orthogonal"]["recall"] >= 0.25
     assert ours["parallel"]["precision"] >= 0.8 and ours["parallel"]["recall"] >= 0.25
@@ -259,8 +259,8 @@ def test_quad_valid_share():
     valid = nm.valid.copy()
     valid[:, 10:, 5:22] = False  # map columns of image x 10..44: the left part of the 0-1 and 0-2 quads
     nm = NormalMaps(nm.maps, valid, nm.scale, nm.source)
-    loose = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig()), ORTHOGONAL)
-    strict = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(quad_valid_share=0.95)), ORTHOGONAL)
+    loose = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(parallel=True)), ORTHOGONAL)
+    strict = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(parallel=True, quad_valid_share=0.95)), ORTHOGONAL)
     assert (0, 2, 1) in loose and (0, 2, 1) not in strict
     assert (3, 5, 0) in strict  # the right wall's quad is untouched
 
@@ -271,13 +271,13 @@ def test_a_line_inside_the_quad_rejects_the_coplanarity():
 
     segs = [(20, 10, 20, 60), (70, 10, 70, 60), (45, 15, 45, 55)]  # two z lines, a third one between them
     pre, tracks, nm = _frame(segs, [2, 2, 2])
-    cfg = RelationsConfig()
+    cfg = RelationsConfig(parallel=True)
     assert quad_crossed(pre, np.array([0]), np.array([1]), min_len_px=5.0).tolist() == [True]
     assert quad_crossed(pre, np.array([0]), np.array([2]), min_len_px=5.0).tolist() == [False]
     assert quad_crossed(pre, np.array([0]), np.array([1]), min_len_px=60.0).tolist() == [False]  # too short to count
     par = _rows(detect_relations(pre, tracks, nm, CAM, cfg), PARALLEL)
     assert (0, 1, 1) not in par and (0, 2, 1) in par and (1, 2, 1) in par
-    paper = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(quad_clear_frac=0.0)), PARALLEL)
+    paper = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(parallel=True, quad_clear_frac=0.0)), PARALLEL)
     assert (0, 1, 1) in paper
     # a piece of one of the two lines themselves is not "between" them
     pre2, tracks2, nm2 = _frame([(20, 10, 20, 60), (70, 10, 70, 60), (21, 62, 21, 80)], [2, 2, 2])
@@ -295,6 +295,6 @@ def test_a_line_running_through_the_quad_rejects_it_even_with_its_midpoint_outsi
     assert quad_crossed(pre, i, j, min_len_px=5.0, samples=1).tolist() == [False]  # the mid-point test misses it
     assert quad_crossed(pre, i, j, min_len_px=5.0, samples=9).tolist() == [True]
     assert quad_crossed(pre, i, j, min_len_px=45.0, samples=9).tolist() == [False]  # ~40 px inside: too short
-    sampled = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(quad_clear_samples=9)), PARALLEL)
-    midpoint = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(quad_clear_samples=1)), PARALLEL)
+    sampled = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(parallel=True, quad_clear_samples=9)), PARALLEL)
+    midpoint = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(parallel=True, quad_clear_samples=1)), PARALLEL)
     assert (0, 1, 1) in midpoint and (0, 1, 1) not in sampled

@@ -34,7 +34,9 @@ from panosfm_graph.pipeline import STAGES
 
 N_FRAMES, SIZE = 100, (320, 180)
 # The orientation map, not the ONNX model: results must not depend on whether models/normals.onnx exists.
-RUN_FLAGS = ["--no-rerun", "--normals", "orientation-map"]
+# parallel coplanarity on (off by default): this small spin registers 2 frames with it and none without, and
+# the tests that kill a run during the bundle adjustment need one
+RUN_FLAGS = ["--no-rerun", "--normals", "orientation-map", "--set", "relations.parallel=true"]
 
 
 # --------------------------------------------------------------------------- helpers
@@ -401,7 +403,7 @@ def test_changed_settings_rerun_only_what_they_affect(spin, previous, baseline):
     from panosfm_graph.config import Config, with_overrides
     from panosfm_graph.pipeline import run_pipeline
 
-    base = with_overrides(Config(), normals={"source": "orientation-map"})
+    base = with_overrides(Config(), normals={"source": "orientation-map"}, relations={"parallel": True})
     same = run_pipeline(spin, previous, base, resume=True, rerun=False)
     assert same.summary["resumed_stages"] == list(STAGES)
     assert (previous / "sparse" / "images.txt").read_bytes() == (baseline / "sparse" / "images.txt").read_bytes()
@@ -418,7 +420,7 @@ def test_edited_code_reruns_its_stage_and_the_later_ones(spin, previous, monkeyp
     from panosfm_graph.cache import stage_code_hash
     from panosfm_graph.config import Config, with_overrides
 
-    base = with_overrides(Config(), normals={"source": "orientation-map"})
+    base = with_overrides(Config(), normals={"source": "orientation-map"}, relations={"parallel": True})
     edited = {"linear": "an edited linear.py"}
     monkeypatch.setattr(pipeline, "stage_code_hash", lambda stage: edited.get(stage) or stage_code_hash(stage))
     res = pipeline.run_pipeline(spin, previous, base, resume=True, rerun=False)
@@ -431,7 +433,7 @@ def test_changed_detection_setting_reruns_everything(spin, previous):
     from panosfm_graph.config import Config, with_overrides
     from panosfm_graph.pipeline import run_pipeline
 
-    cfg = with_overrides(Config(), detect={"min_length_frac": 0.06}, normals={"source": "orientation-map"})
+    cfg = with_overrides(Config(), detect={"min_length_frac": 0.06}, normals={"source": "orientation-map"}, relations={"parallel": True})
     res = run_pipeline(spin, previous, cfg, resume=True, rerun=False)
     assert res.summary["resumed_stages"] == []
 
