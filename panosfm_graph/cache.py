@@ -14,14 +14,14 @@ stage after it instead of returning what the old code computed.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
+import importlib.util
 import json
 import os
 import tempfile
 import typing
 from pathlib import Path
-import functools
-import importlib.util
 from typing import Any
 
 import numpy as np
@@ -34,8 +34,8 @@ _SEP = "__"
 # keys before it, so the modules of earlier stages count for the later ones too. tests/test_cache.py
 # checks that every module a stage imports (of these two packages) is listed for it or an earlier stage
 STAGE_SOURCES: dict[str, tuple[str, ...]] = {
-    "detect": ("panosfm_graph.__init__", "panosfm_graph.pipeline", "panosfm_graph.capture", "panosfm_graph.config", "panosfm_graph.data",
-               "panosfm_graph.cache", "panosfm_graph.errors", "panosfm_graph.geometry", "panosfm_graph.parallel",
+    "detect": ("panosfm_graph.__init__", "panosfm_graph.pipeline", "panosfm_graph.capture", "panosfm_graph.config",
+               "panosfm_graph.data", "panosfm_graph.cache", "panosfm_graph.errors", "panosfm_graph.geometry", "panosfm_graph.parallel",
                "panosfm_graph.progress", "panosfm_graph.thumbnails", "panosfm_graph.lines.detect"),
     "preprocess": ("panosfm_graph.lines", "panosfm_graph.lines.manhattan", "panosfm_graph.lines.rotations"),
     "track": ("panosfm_graph.lines.tracking",),

@@ -120,7 +120,7 @@ class RelationsConfig:
     """Paper §3.2 'Geometric relationship detection'."""
 
     orthogonal: bool = True
-    # parallel coplanarity is detected (tools/bench_relations.py measures it) but off in the pipeline, our
+    # parallel coplanarity is off in the pipeline (tools/bench_relations.py still detects and measures it), our
     # deviation: with orientation-map normals 69-72 % of the pairs are true (a wall line and the parallel
     # edge of furniture in front of it), and the solves do better without them. Measured (tools/bench.py
     # --seeds 5, medians living/bedroom/office): centre err. 1.46/0.69/1.65 -> 1.15/0.66/1.37 %, worst
