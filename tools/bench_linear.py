@@ -24,6 +24,7 @@ import time
 
 import numpy as np
 
+from panosfm_graph.cli import setting_value
 from panosfm_graph.config import LinearConfig
 from panosfm_graph.linear import solve_linear
 from panosfm_graph.synth.problem import make_problem
@@ -79,8 +80,16 @@ def main(argv: list[str] | None = None) -> int:
                     help="motion_bridge_deg: anchor frames this close in turn are linked by the motion prior")
     ap.add_argument("--tracks-first", action="store_true",
                     help="solve from the tracks alone unless the coplanarities are needed to register (option)")
+    ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="a LinearConfig setting, e.g. spin_links=true (repeatable)")
     ap.add_argument("--json", default=None, help="write the results here")
     args = ap.parse_args(argv)
+    sets = {}
+    for item in args.set:
+        field, _, raw = item.partition("=")
+        if not hasattr(LinearConfig, field):
+            ap.error(f"--set {item!r}: LinearConfig has no field {field!r}")
+        sets[field] = setting_value(LinearConfig(), field, raw, f"linear.{field}")
 
     results = {}
     for name in args.scenes:
@@ -89,10 +98,9 @@ def main(argv: list[str] | None = None) -> int:
         floor_z = p.scene.to_world(np.zeros(3))[2]
         height = None if args.no_height else float(p.gt_centers[:, 2].mean() - floor_z)
         t0 = time.perf_counter()
-        sol = solve_linear(p.preprocessed, p.tracks, p.relations, p.camera, LinearConfig(camera_height_m=height,
-                                                                                       motion_weight=args.motion_weight,
-                                                                                       tracks_first=args.tracks_first,
-                                                                                       motion_bridge_deg=args.bridge_deg))
+        settings = {"camera_height_m": height, "motion_weight": args.motion_weight,
+                    "tracks_first": args.tracks_first, "motion_bridge_deg": args.bridge_deg, **sets}
+        sol = solve_linear(p.preprocessed, p.tracks, p.relations, p.camera, LinearConfig(**settings))
         dt = time.perf_counter() - t0
         r = evaluate(p, sol)
         r["seconds"] = dt
