@@ -199,6 +199,9 @@ class LinearConfig:
     spin_vertical_ratio: float = 1.0  # ... the vertical row's weight relative to the horizontal ones
     spin_knot_deg: float = 90.0  # ... the stand point is interpolated between knots this turn apart (0: one stand point)
     spin_walk_ratio: float = 1.0  # ... rows tying neighbouring knots, weight relative to spin_weight
+    # ... and without a metric scale (no floor line verified) the solve is scaled so that the spin's arm is this
+    # long: units about metres, so that the bundle adjustment's sigmas in metres hold (linear.py; 0: mean depth 1)
+    spin_arm_m: float = 0.35
     # ... and it links every frame its own lines fix along every axis (register_frames): groups of frames no
     # track joins are placed by the model. Off: registered bedroom/office 18/50 -> 58/81 %, but centre err.
     # 0.70/0.61 -> 3.47/2.92 % with two of fifteen captures worse than 10 % (also on swaying spins)

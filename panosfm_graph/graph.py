@@ -44,6 +44,9 @@ about the origin so the MEAN camera-to-floor distance equals the initial one (a
 metric initial solution stays metric even when its first frame is misplaced). Phase 3 adds a weak prior (10 % of the calibrated focal) on the
 focal length.
 
+Floor relations are used only where the linear solve's scale rests on them (:func:`floor_held_scale`):
+where it dropped every one of them (no floor verified), so does the bundle adjustment.
+
 Relations checked against the tracks (our addition, ``verify_relations``, off by default: measured
 better on the captures it was developed on, worse on kept-back office captures): phase 1 is first solved
 without any coplanarity; coplanarities whose lines that solve puts further apart than
@@ -141,6 +144,8 @@ def _select(pre: Preprocessed, tracks: Tracks, relations: Relations, initial: So
     for kind, switch in _KIND_SWITCH.items():
         if getattr(config, switch):
             keep |= relations.kind == kind
+    if not floor_held_scale(initial):  # the linear solve found them no floor (or had none): neither is the BA's
+        keep &= relations.kind != FLOOR
     ta, tb = relations.track_a, relations.track_b
     ok_a = (ta >= 0) & line_ok[np.clip(ta, 0, None)]
     ok_b = np.where(relations.kind == FLOOR, True, (tb >= 0) & line_ok[np.clip(tb, 0, None)])
@@ -148,6 +153,18 @@ def _select(pre: Preprocessed, tracks: Tracks, relations: Relations, initial: So
     return _Problem(frames=np.unique(seg.frame[s]), rot_frames=np.flatnonzero(initial.registered),
                     lines=np.flatnonzero(line_ok), obs_seg=s, obs_track=tr[s], obs_frame=seg.frame[s].astype(np.int64),
                     directions=directions, rel_idx=rel_idx)
+
+
+def floor_held_scale(initial: Solution) -> bool:
+    """Returns whether ``initial``'s scale rests on floor relations (metric or camera-to-floor = 1).
+
+    Where the linear solve dropped every floor relation (none verified, or fewer floor lines than
+    ``min_floor_lines``: ``linear.verify_floor``) its scale is arbitrary, and the bundle adjustment
+    leaves the floor out too rather than bring back what was found to be no floor. A solution without
+    a recorded scale mode (a hand-made initial solution) keeps its floor relations.
+    """
+    mode = initial.residuals.get("scale") if isinstance(initial.residuals, dict) else None
+    return mode not in ("mean_depth", "spin_arm")
 
 
 def _relation_sigma(config: GraphConfig) -> float:

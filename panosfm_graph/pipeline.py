@@ -71,12 +71,15 @@ class RunResult:
                          f"{s.get('tracks', 0)} tracks, {s.get('lines', 0)} 3D lines")
         if "relations" in s:
             lines.append("  relations   " + ", ".join(f"{k} {v}" for k, v in s["relations"].items()))
+        linear = s.get("residuals", {}).get("linear", {})
+        arm = s.get("config", {}).get("linear", {}).get("spin_arm_m")
+        units = f"; units about metres: the spin's arm taken as {arm:g} m" if linear.get("scale") == "spin_arm" else ""
         if s.get("metric"):
             lines.append(f"  scale       {s.get('scale', 'metric')}")
         elif s.get("config", {}).get("linear", {}).get("camera_height_m") is not None:
-            lines.append("  scale       arbitrary (no floor line verified for --camera-height)")
+            lines.append(f"  scale       arbitrary (no floor line verified for --camera-height{units})")
         else:
-            lines.append("  scale       arbitrary (no --camera-height)")
+            lines.append(f"  scale       arbitrary (no --camera-height{units})")
         secs = s.get("seconds", {})
         if secs:
             lines.append("  seconds     " + ", ".join(f"{k} {v:.1f}" for k, v in secs.items()))

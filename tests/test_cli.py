@@ -52,3 +52,19 @@ def test_output_that_is_a_file_is_exit_2(tmp_path, capsys):
     assert code == 2
     assert f.read_text() == "precious"
     assert "not a directory" in capsys.readouterr().err
+
+
+def test_report_says_how_an_arbitrary_scale_was_fixed(tmp_path):
+    """``panosfm run`` prints the scale: metric, or arbitrary and why, with the units when the spin's arm set them."""
+    from panosfm_graph.pipeline import RunResult
+
+    def scale_line(summary):
+        return next(line for line in RunResult(tmp_path, summary).report().splitlines() if "scale" in line)
+
+    cfg = {"linear": {"camera_height_m": 1.5, "spin_arm_m": 0.35}}
+    arm = {"metric": False, "config": cfg, "residuals": {"linear": {"scale": "spin_arm"}}}
+    assert "no floor line verified" in scale_line(arm) and "arm taken as 0.35 m" in scale_line(arm)
+    depth = {"metric": False, "config": {"linear": {"camera_height_m": None}},
+             "residuals": {"linear": {"scale": "mean_depth"}}}
+    assert scale_line(depth).endswith("arbitrary (no --camera-height)")
+    assert scale_line({"metric": True, "scale": "metric", "config": cfg}).endswith("metric")

@@ -347,3 +347,26 @@ def test_floor_is_moved_below_the_deepest_horizontal_line():
             assert room_z[sol.residuals["floor_from_line"]] < 0.05  # the line it went down to is on the floor
     assert scale[0] < 0.8, scale  # too large a model: the desk is taken for the floor
     assert abs(scale[3] - 1) < 0.05, scale
+
+
+def test_floor_relations_the_linear_solve_dropped_stay_out():
+    """Floor relations the linear solve dropped, every one (here: fewer floor lines than ``min_floor_lines``),
+    are left out of the bundle adjustment too: no floor factor, the scale stays arbitrary; kept, they are used."""
+    from panosfm_graph.config import LinearConfig
+    from panosfm_graph.linear import solve_linear
+
+    p = make_problem("living", 48, (480, 270), seed=0, pixel_noise_px=0.3)
+    H = float(p.gt_centers[:, 2].mean() - p.scene.to_world(np.zeros(3))[2])
+    counts = {}
+    for name, need in (("true", 1), ("dropped", 10 ** 6)):
+        lin = solve_linear(p.preprocessed, p.tracks, p.relations, p.camera,
+                           LinearConfig(camera_height_m=H, tracks_first=False, min_floor_lines=need))
+        assert lin.metric == (name == "true")
+        sol = bundle_adjust(p.preprocessed, p.tracks, p.relations, lin, FAST)
+        counts[name] = sol.residuals["factors"]["floor"]
+        assert sol.metric == (name == "true")
+        reg = sol.registered
+        s, R, t = umeyama(sol.centers[reg], p.gt_centers[reg])
+        err = np.linalg.norm(s * sol.centers[reg] @ R.T + t - p.gt_centers[reg], axis=1)
+        assert np.median(err) < 0.005, (name, np.median(err))
+    assert counts["true"] > 0 and counts["dropped"] == 0, counts

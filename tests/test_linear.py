@@ -447,3 +447,27 @@ def test_spin_height_registers_frames_without_horizontal_lines(clean):
     assert not ba_plain.registered[window].any()
     assert ba_held.registered[window].all()
     assert _centre_error(p, ba_held) < 0.02
+
+
+def _circle_radius(P):
+    """Returns the radius of the least-squares circle through the horizontal coordinates of ``P`` (N, 3)."""
+    A = np.c_[2 * P[:, :2], np.ones(len(P))]
+    x = np.linalg.lstsq(A, np.sum(P[:, :2] ** 2, axis=1), rcond=None)[0]
+    return float(np.sqrt(x[2] + x[0] ** 2 + x[1] ** 2))
+
+
+def test_arbitrary_scale_makes_the_spin_arm_its_nominal_length(clean):
+    """Our normalisation: without a floor the spin's arm is ``spin_arm_m`` long (units about metres, so
+    that the bundle adjustment's sigmas in metres hold); with ``spin_arm_m`` 0 the mean depth is 1."""
+    p = clean
+    nofloor = p.relations.subset(p.relations.kind != FLOOR)
+    sol = solve_linear(p.preprocessed, p.tracks, nofloor, p.camera, Paper(camera_height_m=_height(p), spin_arm_m=0.35))
+    assert not sol.metric and sol.residuals["scale"] == "spin_arm"
+    reg = sol.registered
+    assert abs(_circle_radius(sol.centers[reg]) - 0.35) < 0.01
+    assert _centre_error(p, sol) < 0.01
+    s, _, _ = umeyama(sol.centers[reg], p.gt_centers[reg])
+    assert abs(s - _circle_radius(p.gt_centers[reg]) / 0.35) < 0.02 * s  # the true arm over the nominal one
+    plain = solve_linear(p.preprocessed, p.tracks, nofloor, p.camera, Paper(spin_arm_m=0.0))
+    assert plain.residuals["scale"] == "mean_depth"
+
