@@ -202,9 +202,12 @@ class LinearConfig:
     # ... and without a metric scale (no floor line verified) the solve is scaled so that the spin's arm is this
     # long: units about metres, so that the bundle adjustment's sigmas in metres hold (linear.py; 0: mean depth 1)
     spin_arm_m: float = 0.35
-    # ... and it links every frame its own lines fix along every axis (register_frames): groups of frames no
-    # track joins are placed by the model. Off: registered bedroom/office 18/50 -> 58/81 %, but centre err.
-    # 0.70/0.61 -> 3.47/2.92 % with two of fifteen captures worse than 10 % (also on swaying spins)
+    # ... and it places a group of frames their own lines fix that the lines link to the rest along one
+    # horizontal axis but not another (register_frames; a group sharing no line stays unregistered). Use it
+    # with spin_knot_deg 0 here and in graph (a wandering stand point lets such a group slide). Off: on ideal
+    # circles (tools/bench.py --seeds 5, registered and centre err. living/bedroom/office) 96/22/77 ->
+    # 96/46/81 %, 1.15/0.66/1.37 -> 0.85/0.66/0.74 % (kept back 94/41/82 -> 95/67/85 %, 1.06/0.71/1.50 ->
+    # 1.26/0.61/0.78 %), but on spins that sway 5 cm 1.05/1.18/1.93 -> 2.78/3.28/4.64 %, 1.1 -> 1.3-1.4 px
     spin_links: bool = False
     # ... and it holds the height of a frame whose lines do not (register_frames; with graph.spin_height). Off:
     # registered bedroom/office 23/78 -> 40/84 % (swaying spins 29/52 -> 35/84 %, kept-back seeds 41/82 ->

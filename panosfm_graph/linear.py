@@ -65,6 +65,12 @@ Formulation choices (documented deviations are marked *):
   normals of its informative observations span 3D (smallest eigenvalue of their scatter >=
   ``min_view_eig``): each observation of a known line constrains the centre to one plane.
   (1) and (2) are iterated to a fixed point. Other frames get NaN centres and ``registered=False``.
+* Spin links* (``spin_links``, with the spin model): a group of anchor frames (fixed along every axis by
+  their own lines) that the lines link to the main group along a horizontal axis but not along another
+  (a blank wall between, only lines along x in view) is placed along the missing axes by the spin model,
+  with one stand point (``spin_knot_deg`` 0: a wandering stand point lets such a group slide). A group
+  the lines link along no horizontal axis -- a part of the sweep that shares no line with the rest --
+  stays unregistered: the floor alone links heights, not positions or scale.
 * Bridging* (``motion_bridge_deg`` > 0 with the motion prior on; off by default): anchor frames
   (fixed along every axis by their own lines) that follow each other within that many degrees of
   turn are linked along every axis by the motion prior (:func:`motion_links`): it joins groups of
@@ -184,7 +190,8 @@ def register_frames(n_frames: int, obs_frame: np.ndarray, obs_track: np.ndarray,
     ``bridge_deg`` > 0 (the body-motion prior is on) consecutive anchor frames (fixed along every
     axis by their own lines) within that turn are linked along every axis (:func:`motion_links`)
     and the frames between them registered; ``manhattan`` (rows: the axes) maps the weak
-    directions of criterion (2) onto axes.
+    directions of criterion (2) onto axes. With ``spin_links`` anchor groups linked to the main
+    group along a horizontal axis are linked along the others too (module docstring: Spin links).
     """
     F, T = n_frames, len(track_axis)
     kept = np.zeros(F, bool)
@@ -210,34 +217,54 @@ def register_frames(n_frames: int, obs_frame: np.ndarray, obs_track: np.ndarray,
             weak[:, _VERTICAL] = False
         anchor = kept & (np.bincount(obs_frame[oi], minlength=F) > 0) & ~weak.any(axis=1)
         link_a, link_b = motion_links(anchor, turned, bridge_deg)
-        hub = np.flatnonzero(anchor) if spin_links else np.zeros(0, int)  # the spin model ties every anchor
-        labels = []
-        for k in range(3):
-            e_obs = oi & (track_axis[obs_track] != k)
-            rows = [obs_frame[e_obs], F + obs_track[e_obs], link_a, hub]
-            cols = [F + obs_track[e_obs], obs_frame[e_obs], link_b, np.full(len(hub), F + T + 1)]
-            er = ra & (rel_axis == k) & informative[rel_a] & informative[rel_b]
-            rows += [F + rel_a[er]]
-            cols += [F + rel_b[er]]
-            if k == _VERTICAL:
-                fl = floor_track[live[floor_track] & informative[floor_track]]
-                rows += [F + fl]
-                cols += [np.full(len(fl), F + T)]
-                if spin_height:
-                    up = np.flatnonzero(kept)
-                    rows += [up]
-                    cols += [np.full(len(up), F + T + 1)]
-            r = np.concatenate(rows)
-            c = np.concatenate(cols)
-            g = sp.coo_matrix((np.ones(len(r)), (r, c)), shape=(F + T + 2, F + T + 2))
-            labels.append(connected_components(g, directed=False)[1][:F])
-        lab = np.stack(labels, axis=1)
-        cls_id, inv = np.unique(lab[kept], axis=0, return_inverse=True)
-        inv = np.ravel(inv)
-        if len(cls_id) == 0:
-            return np.zeros(F, bool), _reasons(has_obs, np.ones((F, 3), bool), np.zeros((F, 3), bool), np.zeros(F, bool))
-        counts = np.bincount(inv)
-        best = cls_id[np.argmax(counts)]  # np.argmax: first (earliest-labelled) class on ties
+
+        def axis_labels(hub):
+            """(F, 3) connected-component label of each frame along each axis (``hub``: spin-linked frames)."""
+            out = []
+            for k in range(3):
+                e_obs = oi & (track_axis[obs_track] != k)
+                rows = [obs_frame[e_obs], F + obs_track[e_obs], link_a, hub]
+                cols = [F + obs_track[e_obs], obs_frame[e_obs], link_b, np.full(len(hub), F + T + 1)]
+                er = ra & (rel_axis == k) & informative[rel_a] & informative[rel_b]
+                rows += [F + rel_a[er]]
+                cols += [F + rel_b[er]]
+                if k == _VERTICAL:
+                    fl = floor_track[live[floor_track] & informative[floor_track]]
+                    rows += [F + fl]
+                    cols += [np.full(len(fl), F + T)]
+                    if spin_height:
+                        up = np.flatnonzero(kept)
+                        rows += [up]
+                        cols += [np.full(len(up), F + T + 1)]
+                r = np.concatenate(rows)
+                c = np.concatenate(cols)
+                g = sp.coo_matrix((np.ones(len(r)), (r, c)), shape=(F + T + 2, F + T + 2))
+                out.append(connected_components(g, directed=False)[1][:F])
+            return np.stack(out, axis=1)
+
+        def main_class(lab):
+            """The label triple shared by the most kept frames (first on ties), or None."""
+            cls_id, inv = np.unique(lab[kept], axis=0, return_inverse=True)
+            return cls_id[np.argmax(np.bincount(np.ravel(inv)))] if len(cls_id) else None
+
+        lab = axis_labels(np.zeros(0, int))
+        best = main_class(lab)
+        if spin_links and best is not None:
+            # the spin model places a group of anchors along the axes no line links it by, but only a
+            # group its lines link to the main one along a horizontal axis (that shares its scale):
+            # a part of the sweep that shares no line with the rest stays unregistered
+            hub = np.zeros(0, int)
+            for _ in range(F):
+                horizontal = [k for k in range(3) if k != _VERTICAL]
+                new_hub = np.flatnonzero(anchor & np.any(lab[:, horizontal] == best[horizontal], axis=1))
+                if np.array_equal(new_hub, hub):
+                    break
+                hub = new_hub
+                lab = axis_labels(hub)
+                best = main_class(lab)
+        if best is None:
+            none = np.zeros((F, 3), bool)
+            return np.zeros(F, bool), _reasons(has_obs, ~none, none, np.zeros(F, bool))
         linked = lab == best[None]
         determined = linked & kept[:, None] & ~weak
         main = linked.all(axis=1)
