@@ -53,10 +53,10 @@ Formulation choices (documented deviations are marked *):
   adjustment's sigmas and determinacy thresholds in metres are about right (measured, the only two of
   45 captures with no floor verified: kept-back bedroom capture 81, 7.4 -> 5.5 % centre error and
   9.2 -> 6.9 px corner reprojection; bedroom capture 1 unchanged but 2 frames fewer registered). The
-  arm does not check a metric scale: measured,
-  a distorted linear solve's arm came out 0.06-0.09 m where the floor's scale was right (the BA then
-  keeps it). ``min_depth_m`` is applied during the solve (with the floor ``camera_height_m`` -- or 1 --
-  below the FIRST camera, or the reference depth = 1) and is thus in approximately those units.
+  arm does not check a metric scale: measured, a distorted linear solve's arm came out 0.06-0.09 m
+  where the floor's scale was right (the BA then keeps it). ``min_depth_m`` is applied during the solve
+  (with the floor ``camera_height_m`` -- or 1 -- below the FIRST camera, or the reference depth = 1) and
+  is thus in approximately those units.
 * Registration: a frame is solved only if (1) it lies in the largest group of frames that are
   connected, separately along each Manhattan axis ``k``, through observations of tracks that carry
   a ``k`` coordinate, relations of normal ``k`` and (``k`` vertical) the floor -- a frame linked
@@ -254,8 +254,8 @@ def register_frames(n_frames: int, obs_frame: np.ndarray, obs_track: np.ndarray,
             # group its lines link to the main one along a horizontal axis (that shares its scale):
             # a part of the sweep that shares no line with the rest stays unregistered
             hub = np.zeros(0, int)
+            horizontal = [k for k in range(3) if k != _VERTICAL]
             for _ in range(F):
-                horizontal = [k for k in range(3) if k != _VERTICAL]
                 new_hub = np.flatnonzero(anchor & np.any(lab[:, horizontal] == best[horizontal], axis=1))
                 if np.array_equal(new_hub, hub):
                     break

@@ -71,9 +71,10 @@ class RunResult:
                          f"{s.get('tracks', 0)} tracks, {s.get('lines', 0)} 3D lines")
         if "relations" in s:
             lines.append("  relations   " + ", ".join(f"{k} {v}" for k, v in s["relations"].items()))
-        linear = s.get("residuals", {}).get("linear", {})
+        linear = (s.get("residuals") or {}).get("linear") or {}
         arm = s.get("config", {}).get("linear", {}).get("spin_arm_m")
-        units = f"; units about metres: the spin's arm taken as {arm:g} m" if linear.get("scale") == "spin_arm" else ""
+        by_arm = linear.get("scale") == "spin_arm" and arm is not None
+        units = f"; units about metres: the spin's arm taken as {arm:g} m" if by_arm else ""
         if s.get("metric"):
             lines.append(f"  scale       {s.get('scale', 'metric')}")
         elif s.get("config", {}).get("linear", {}).get("camera_height_m") is not None:
