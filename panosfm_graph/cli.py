@@ -92,6 +92,21 @@ def setting_value(section: object, field: str, raw: str, key: str | None = None)
         raise InputError(f"--set {key or field}={raw}: expected a value of type {name}") from None
 
 
+def section_settings(section: object, items: list[str], prefix: str) -> dict[str, object]:
+    """Returns {field: value} of ``FIELD=VALUE`` items for one Config section (as :func:`setting_value`).
+
+    For the tools that take settings of one section (``tools/bench_linear.py --set spin_links=true``);
+    an unknown field is an :class:`InputError` naming ``prefix.FIELD``.
+    """
+    out = {}
+    for item in items or []:
+        field, _, raw = item.partition("=")
+        if not hasattr(section, field):
+            raise InputError(f"--set {item!r}: no setting {prefix}.{field}")
+        out[field] = setting_value(section, field, raw, f"{prefix}.{field}")
+    return out
+
+
 def config_from_args(args: argparse.Namespace, base: Config | None = None) -> Config:
     """Returns the Config described by the CLI flags (``--set`` last, so it wins)."""
     cfg = base or Config()

@@ -517,6 +517,7 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     if use_spin:
         spin_c, spin_v, n_spin = _spin_rows(frames, fwd, turned_degrees(pre.R_wc), col_spin, config)
     n_cols = col_h + 1 + (n_spin if use_spin else 0)
+    col_arm = n_cols - 2  # the spin model's arm (a, b): its last two unknowns (_spin_rows)
 
     def tau_col(frame, k):
         return 3 * frame_col[frame] + k
@@ -674,7 +675,7 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     else:
         s = 1.0 / lam.mean() if len(lam) else 1.0
         if use_spin and config.spin_arm_m > 0:
-            arm = float(np.hypot(*x[n_cols - 2:n_cols])) * s  # in mean-depth units
+            arm = float(np.hypot(*x[col_arm:col_arm + 2])) * s  # in mean-depth units
             if np.isfinite(arm) and arm > 0.01:  # a spin at all (1 % of the mean depth): units ~ metres
                 s *= config.spin_arm_m / arm
                 scale_mode = "spin_arm"

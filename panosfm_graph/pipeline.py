@@ -72,12 +72,13 @@ class RunResult:
         if "relations" in s:
             lines.append("  relations   " + ", ".join(f"{k} {v}" for k, v in s["relations"].items()))
         linear = (s.get("residuals") or {}).get("linear") or {}
-        arm = s.get("config", {}).get("linear", {}).get("spin_arm_m")
+        linear_cfg = s.get("config", {}).get("linear", {})
+        arm = linear_cfg.get("spin_arm_m")
         by_arm = linear.get("scale") == "spin_arm" and arm is not None
         units = f"; units about metres: the spin's arm taken as {arm:g} m" if by_arm else ""
         if s.get("metric"):
             lines.append(f"  scale       {s.get('scale', 'metric')}")
-        elif s.get("config", {}).get("linear", {}).get("camera_height_m") is not None:
+        elif linear_cfg.get("camera_height_m") is not None:
             lines.append(f"  scale       arbitrary (no floor line verified for --camera-height{units})")
         else:
             lines.append(f"  scale       arbitrary (no --camera-height{units})")

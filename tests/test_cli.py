@@ -68,3 +68,17 @@ def test_report_says_how_an_arbitrary_scale_was_fixed(tmp_path):
              "residuals": {"linear": {"scale": "mean_depth"}}}
     assert scale_line(depth).endswith("arbitrary (no --camera-height)")
     assert scale_line({"metric": True, "scale": "metric", "config": cfg}).endswith("metric")
+
+
+def test_section_settings_parse_one_sections_fields():
+    """The tools' ``--set FIELD=VALUE`` (one Config section): the field's type, and a one-line error otherwise."""
+    from panosfm_graph.cli import section_settings
+    from panosfm_graph.config import LinearConfig, RelationsConfig
+    from panosfm_graph.errors import InputError
+
+    got = section_settings(LinearConfig(), ["spin_links=off", "min_view_eig=0.01", "camera_height_m=none"], "linear")
+    assert got == {"spin_links": False, "min_view_eig": 0.01, "camera_height_m": None}
+    assert section_settings(RelationsConfig(), None, "relations") == {}
+    for bad in (["nope=1"], ["spin_links=maybe"]):
+        with pytest.raises(InputError, match="linear"):
+            section_settings(LinearConfig(), bad, "linear")

@@ -24,8 +24,9 @@ import time
 
 import numpy as np
 
-from panosfm_graph.cli import setting_value
+from panosfm_graph.cli import section_settings
 from panosfm_graph.config import LinearConfig
+from panosfm_graph.errors import InputError
 from panosfm_graph.linear import solve_linear
 from panosfm_graph.synth.problem import make_problem
 from panosfm_graph.evaluate import umeyama
@@ -84,12 +85,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="a LinearConfig setting, e.g. spin_links=true (repeatable)")
     ap.add_argument("--json", default=None, help="write the results here")
     args = ap.parse_args(argv)
-    sets = {}
-    for item in args.set:
-        field, _, raw = item.partition("=")
-        if not hasattr(LinearConfig, field):
-            ap.error(f"--set {item!r}: LinearConfig has no field {field!r}")
-        sets[field] = setting_value(LinearConfig(), field, raw, f"linear.{field}")
+    try:
+        sets = section_settings(LinearConfig(), args.set, "linear")
+    except InputError as exc:
+        ap.error(str(exc))
 
     results = {}
     for name in args.scenes:

@@ -38,8 +38,10 @@ from pathlib import Path
 
 import numpy as np
 
+from panosfm_graph.cli import section_settings
 from panosfm_graph.config import Config, LinearConfig, NormalsConfig, RelationsConfig
 from panosfm_graph.data import FLOOR, JUNCTION, ORTHOGONAL, PARALLEL, RELATION_NAMES
+from panosfm_graph.errors import InputError
 from panosfm_graph.linear import verify_floor
 from panosfm_graph.normals import estimate_normals, normal_accuracy
 from panosfm_graph.pipeline import run_pipeline
@@ -186,15 +188,6 @@ def bench_scene(cap: Path, work: Path, sources, width: int, tol: float, cfg: Rel
     return rows
 
 
-def _parse_set(items) -> dict:
-    out = {}
-    for it in items or []:
-        k, v = it.split("=", 1)
-        f = {f.name: f for f in dataclasses.fields(RelationsConfig)}[k]
-        out[k] = (v.lower() in ("1", "true", "yes")) if f.type in (bool, "bool") else type(getattr(RelationsConfig(), k))(v)
-    return out
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs="+", default=["living", "bedroom", "office"])
@@ -215,7 +208,11 @@ def main() -> None:
         if (Path(__file__).resolve().parents[1] / "panosfm_graph" / "models" / "normals.onnx").exists():
             sources.append("model")
     # all four of the paper's tests, also parallel (off in the pipeline's default: config.RelationsConfig)
-    cfg = dataclasses.replace(RelationsConfig(), **{"parallel": True, **_parse_set(args.set)})
+    try:
+        sets = section_settings(RelationsConfig(), args.set, "relations")
+    except InputError as exc:
+        ap.error(str(exc))
+    cfg = dataclasses.replace(RelationsConfig(), **{"parallel": True, **sets})
     root = Path(args.root)
     root.mkdir(parents=True, exist_ok=True)
     results, cache = [], {}
