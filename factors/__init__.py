@@ -15,8 +15,10 @@ from factors.coplanarity import (
 )
 from factors.imu_rotation import imu_noise, imu_rotation_factor
 from factors.line_reprojection import (
+    LineReprojectionSet,
     line_reprojection_error,
     line_reprojection_factor,
+    reprojection_terms,
     segment_distances,
     segment_residuals,
 )
@@ -43,7 +45,7 @@ __all__ = [
     "coplanarity_error", "coplanarity_factor", "coplanarity_factor_builtin", "floor_error", "floor_factor",
     "plane_offset_error", "plane_offset_factor",
     "imu_noise", "imu_rotation_factor",
-    "line_reprojection_error", "line_reprojection_factor", "segment_distances", "segment_residuals",
+    "LineReprojectionSet", "line_reprojection_error", "line_reprojection_factor", "reprojection_terms", "segment_distances", "segment_residuals",
     "noise_model", "projection_noise", "robust_kernel", "robust_weight", "sigma_from_weight",
     "horizontal_direction", "spin_knots", "spin_model_rows", "spin_noise", "spin_prior_error", "spin_prior_factor",
     "interpretation_normal", "line_extent", "plucker", "project_line",

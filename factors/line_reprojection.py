@@ -30,6 +30,8 @@ import functools
 import gtsam
 import numpy as np
 
+from factors.robust import noise_model
+
 _S3 = 1.0 / (2.0 * np.sqrt(3.0))
 
 
@@ -60,13 +62,64 @@ def segment_residuals(d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
     return np.stack([0.5 * (d1 + d2), _S3 * (d1 - d2)], axis=-1)
 
 
+def reprojection_terms(endpoints: np.ndarray, direction: np.ndarray, lam: np.ndarray, C: np.ndarray, R: np.ndarray,
+                       K: np.ndarray, fx: float | None = None, jacobians: bool = False):
+    """Returns the (N, 2) segment-averaged residuals (pixels) of N observations, with their Jacobians if asked.
+
+    Vectorised over observations: ``endpoints`` (N, 4) pixels, ``direction``
+    A (3,) or (N, 3), ``lam`` Lambda (3,) or (N, 3), centres ``C`` (N, 3),
+    ``R`` R_wc (N, 3, 3), base intrinsics ``K``; ``fx`` a focal length
+    replacing K's (fy keeps the aspect). With ``jacobians``: also the (N, 2, 3)
+    Jacobians with respect to Lambda, the centre and the rotation (right
+    perturbation), and the (N, 2) one with respect to fx.
+    """
+    fx0, fy0, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    if fx is None:
+        fx, fy = fx0, fy0
+    else:
+        fy = fx * fy0 / fx0
+    w = _cross(lam - C, direction)                         # (N, 3) world normal of the interpretation plane
+    n = np.einsum("nji,nj->ni", R, w)                      # camera frame
+    N = len(n)
+    m1 = np.empty((N, 3))
+    m2 = np.empty((N, 3))
+    m1[:, 0] = (endpoints[:, 0] - cx) / fx
+    m1[:, 1] = (endpoints[:, 1] - cy) / fy
+    m2[:, 0] = (endpoints[:, 2] - cx) / fx
+    m2[:, 1] = (endpoints[:, 3] - cy) / fy
+    m1[:, 2] = m2[:, 2] = 1.0
+    s = np.sqrt((n[:, 0] / fx) ** 2 + (n[:, 1] / fy) ** 2)
+    d1 = (n * m1).sum(1) / s
+    d2 = (n * m2).sum(1) / s
+    r = np.empty((N, 2))
+    r[:, 0] = 0.5 * (d1 + d2)
+    r[:, 1] = _S3 * (d1 - d2)
+    if not jacobians:
+        return r
+    # d d_k / d n = (m_k - d_k q) / s with q = (n1 / fx², n2 / fy², 0) / s
+    q = np.zeros((N, 3))
+    q[:, 0] = n[:, 0] / (fx * fx * s)
+    q[:, 1] = n[:, 1] / (fy * fy * s)
+    g1 = (m1 - d1[:, None] * q) / s[:, None]
+    g2 = (m2 - d2[:, None] * q) / s[:, None]
+    G = np.empty((N, 2, 3))                                # rows of the two residuals, w.r.t. n
+    G[:, 0] = 0.5 * (g1 + g2)
+    G[:, 1] = _S3 * (g1 - g2)
+    v = np.einsum("nij,nkj->nki", R, G)                    # R g: gradient w.r.t. the world normal w
+    J_c = _cross(v, np.reshape(direction, (-1, 1, 3)))     # d/dc = (R g) x A ; d/dLambda = -(R g) x A
+    J_rot = _cross(G, n[:, None, :])                       # d/dw_rot = g x n (right perturbation)
+    J_f = np.zeros((N, 2))
+    J_f[:, 0] = n[:, 2] / (fx * s)                         # d d_k / d fx, equal for both endpoints
+    return r, -J_c, J_c, J_rot, J_f
+
+
 def line_reprojection_error(endpoints: np.ndarray, direction: np.ndarray, K: np.ndarray, R_fixed: np.ndarray | None,
                             has_focal: bool, this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
     """Returns the stacked (2n,) segment-averaged reprojection residuals (pixels) of one line in n frames.
 
     ``endpoints`` (n, 4) pixels; ``direction`` A (3,); ``K`` base intrinsics;
     ``R_fixed`` (n, 3, 3) constant R_wc when rotations are not variables.
-    Jacobians are analytic (module docstring for the keys' order).
+    Jacobians are analytic (:func:`reprojection_terms`; module docstring for the keys' order).
     """
     keys = this.keys()
     nobs = len(endpoints)
@@ -76,62 +129,24 @@ def line_reprojection_error(endpoints: np.ndarray, direction: np.ndarray, K: np.
         R = np.array([values.atRot3(k).matrix() for k in keys[1 + nobs:1 + 2 * nobs]])
     else:
         R = R_fixed
-    fx0, fy0, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    if has_focal:
-        fx = values.atVector(keys[-1])[0]
-        fy = fx * fy0 / fx0
-    else:
-        fx, fy = fx0, fy0
-    w = _cross(lam - C, direction)                         # (n, 3) world normal of the interpretation plane
-    n = np.einsum("nji,nj->ni", R, w)                      # camera frame
-    m1 = np.empty((nobs, 3))
-    m2 = np.empty((nobs, 3))
-    m1[:, 0] = (endpoints[:, 0] - cx) / fx
-    m1[:, 1] = (endpoints[:, 1] - cy) / fy
-    m2[:, 0] = (endpoints[:, 2] - cx) / fx
-    m2[:, 1] = (endpoints[:, 3] - cy) / fy
-    m1[:, 2] = m2[:, 2] = 1.0
-    s = np.sqrt((n[:, 0] / fx) ** 2 + (n[:, 1] / fy) ** 2)
-    d1 = (n * m1).sum(1) / s
-    d2 = (n * m2).sum(1) / s
-    r = np.empty(2 * nobs)
-    r[0::2] = 0.5 * (d1 + d2)
-    r[1::2] = _S3 * (d1 - d2)
+    fx = values.atVector(keys[-1])[0] if has_focal else None
     if jacobians is None:
-        return r
-    # d d_k / d n = (m_k - d_k q) / s with q = (n1 / fx², n2 / fy², 0) / s
-    q = np.zeros((nobs, 3))
-    q[:, 0] = n[:, 0] / (fx * fx * s)
-    q[:, 1] = n[:, 1] / (fy * fy * s)
-    g1 = (m1 - d1[:, None] * q) / s[:, None]
-    g2 = (m2 - d2[:, None] * q) / s[:, None]
-    ga = 0.5 * (g1 + g2)                                   # rows of residual a, w.r.t. n
-    gb = _S3 * (g1 - g2)
-    G = np.empty((2 * nobs, 3))
-    G[0::2], G[1::2] = ga, gb
-    Rrep = np.repeat(R, 2, axis=0)                         # (2n, 3, 3)
-    v = np.einsum("kij,kj->ki", Rrep, G)                   # R g: gradient w.r.t. the world normal w
-    J_c = _cross(v, direction)                           # d/dc = (R g) x A ; d/dLambda = -(R g) x A
-    jacobians[0] = -J_c
+        return reprojection_terms(endpoints, direction, lam, C, R, K, fx).ravel()
+    r, J_l, J_c, J_r, J_f = reprojection_terms(endpoints, direction, lam, C, R, K, fx, jacobians=True)
+    jacobians[0] = J_l.reshape(2 * nobs, 3)
     rows = np.arange(2 * nobs)
     blocks = np.zeros((nobs, 2 * nobs, 3))
-    blocks[rows // 2, rows] = J_c
+    blocks[rows // 2, rows] = J_c.reshape(2 * nobs, 3)
     for j in range(nobs):
         jacobians[1 + j] = blocks[j]
     if R_fixed is None:
-        nrep = np.repeat(n, 2, axis=0)
-        J_r = _cross(G, nrep)                            # d/dw_rot = g x n (right perturbation)
         blocks = np.zeros((nobs, 2 * nobs, 3))
-        blocks[rows // 2, rows] = J_r
+        blocks[rows // 2, rows] = J_r.reshape(2 * nobs, 3)
         for j in range(nobs):
             jacobians[1 + nobs + j] = blocks[j]
     if has_focal:
-        df1 = n[:, 2] / (fx * s)                           # d d_k / d fx, equal for both endpoints
-        J_f = np.empty((2 * nobs, 1))
-        J_f[0::2, 0] = df1
-        J_f[1::2, 0] = 0.0
-        jacobians[len(keys) - 1] = J_f
-    return r
+        jacobians[len(keys) - 1] = J_f.reshape(2 * nobs, 1)
+    return r.ravel()
 
 
 def line_reprojection_factor(line_key: int, center_keys, endpoints: np.ndarray, direction: np.ndarray, K: np.ndarray,
@@ -164,3 +179,102 @@ def line_reprojection_factor(line_key: int, center_keys, endpoints: np.ndarray, 
     a = np.asarray(direction, dtype=np.float64).reshape(3)
     fn = functools.partial(line_reprojection_error, ep, a, np.asarray(K, dtype=np.float64), R_fixed, focal_key is not None)
     return gtsam.CustomFactor(noise, keys, fn)
+
+
+class LineReprojectionSet:
+    """The line reprojection terms of many observations, evaluated and linearised in one vectorised call.
+
+    The same residuals and analytic Jacobians as :func:`line_reprojection_factor`
+    (both come from :func:`reprojection_terms`), for all of a graph's
+    observations at once, with isotropic Gaussian noise of ``sigma`` pixels:
+    :meth:`error` is what the factors add to ``graph.error`` and
+    :meth:`linearize` the ``gtsam.GaussianFactorGraph`` they linearise to (one
+    ``JacobianFactor`` per observation on its line, centre and, when they are
+    variables, rotation). An optimiser driven from Python
+    (notes/gtsam-python-performance.md) then makes one Python call per
+    linearisation instead of one callback per factor. The focal length as a
+    variable would need a fourth key per observation, more than Python can give a
+    ``JacobianFactor``: there use the factors (:meth:`factors`).
+    """
+
+    def __init__(self, line_keys, center_keys, endpoints: np.ndarray, directions: np.ndarray, K: np.ndarray,
+                 sigma: float, rotation_keys=None, R_wc_fixed: np.ndarray | None = None):
+        self.endpoints = np.ascontiguousarray(endpoints, dtype=np.float64).reshape(-1, 4)
+        n = len(self.endpoints)
+        self.directions = np.ascontiguousarray(directions, dtype=np.float64).reshape(n, 3)
+        self.K = np.asarray(K, dtype=np.float64)
+        self.sigma = float(sigma)
+        self.line_keys = [int(k) for k in line_keys]
+        self.center_keys = [int(k) for k in center_keys]
+        self.rotation_keys = None if rotation_keys is None else [int(k) for k in rotation_keys]
+        if len(self.line_keys) != n or len(self.center_keys) != n or (
+                self.rotation_keys is not None and len(self.rotation_keys) != n):
+            raise ValueError("one line, centre (and rotation) key per observation expected")
+        if self.rotation_keys is None:
+            if R_wc_fixed is None:
+                raise ValueError("give rotation_keys or R_wc_fixed")
+            self.R_fixed = np.ascontiguousarray(R_wc_fixed, dtype=np.float64).reshape(n, 3, 3)
+        else:
+            self.R_fixed = None
+        # each variable is read once per evaluation
+        self._lines, self._line_of = np.unique(np.asarray(self.line_keys, np.uint64), return_inverse=True)
+        self._centers, self._center_of = np.unique(np.asarray(self.center_keys, np.uint64), return_inverse=True)
+        if self.rotation_keys is not None:
+            self._rots, self._rot_of = np.unique(np.asarray(self.rotation_keys, np.uint64), return_inverse=True)
+        self._unit = gtsam.noiseModel.Unit.Create(2)
+
+    def __len__(self) -> int:
+        return len(self.endpoints)
+
+    def _state(self, values: gtsam.Values) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        lam = np.array([values.atPoint3(int(k)) for k in self._lines]).reshape(-1, 3)[self._line_of]
+        C = np.array([values.atPoint3(int(k)) for k in self._centers]).reshape(-1, 3)[self._center_of]
+        if self.R_fixed is not None:
+            return lam, C, self.R_fixed
+        R = np.array([values.atRot3(int(k)).matrix() for k in self._rots]).reshape(-1, 3, 3)[self._rot_of]
+        return lam, C, R
+
+    def residuals(self, values: gtsam.Values) -> np.ndarray:
+        """Returns the (N, 2) residuals in pixels at ``values``."""
+        lam, C, R = self._state(values)
+        return reprojection_terms(self.endpoints, self.directions, lam, C, R, self.K)
+
+    def error(self, values: gtsam.Values) -> float:
+        """Returns 0.5 * the sum of the whitened squared residuals (as ``graph.error`` of the factors)."""
+        r = self.residuals(values)
+        return 0.5 * float(np.sum(r * r)) / self.sigma**2
+
+    def linearize(self, values: gtsam.Values) -> gtsam.GaussianFactorGraph:
+        """Returns the whitened linearisation at ``values``: ``||J delta + r||^2 / sigma^2`` per observation."""
+        lam, C, R = self._state(values)
+        r, J_l, J_c, J_r, _ = reprojection_terms(self.endpoints, self.directions, lam, C, R, self.K, jacobians=True)
+        w = 1.0 / self.sigma
+        b = list(-w * r)
+        A_l, A_c = list(w * J_l), list(w * J_c)
+        gfg = gtsam.GaussianFactorGraph()
+        unit = self._unit
+        if self.rotation_keys is None:
+            for kl, al, kc, ac, bb in zip(self.line_keys, A_l, self.center_keys, A_c, b):
+                gfg.push_back(gtsam.JacobianFactor(kl, al, kc, ac, bb, unit))
+        else:
+            A_r = list(w * J_r)
+            for kl, al, kc, ac, kr, ar, bb in zip(self.line_keys, A_l, self.center_keys, A_c, self.rotation_keys, A_r, b):
+                gfg.push_back(gtsam.JacobianFactor(kl, al, kc, ac, kr, ar, bb, unit))
+        return gfg
+
+    def factors(self, chunk: int = 8, focal_key: int | None = None) -> list[gtsam.CustomFactor]:
+        """Returns the same terms as :func:`line_reprojection_factor` s, each on a run of one line's consecutive
+        observations (``chunk`` at most), with the focal length ``focal_key`` as a variable when given."""
+        return [line_reprojection_factor(
+            self.line_keys[c0], self.center_keys[c0:c1], self.endpoints[c0:c1], self.directions[c0], self.K,
+            noise_model(2 * (c1 - c0), self.sigma),
+            rotation_keys=None if self.rotation_keys is None else self.rotation_keys[c0:c1],
+            R_wc_fixed=None if self.R_fixed is None else self.R_fixed[c0:c1], focal_key=focal_key)
+            for c0, c1 in self.runs(chunk)]
+
+    def runs(self, chunk: int) -> list[tuple[int, int]]:
+        """Returns the (start, stop) observation ranges of :meth:`factors`: one line's consecutive observations, ``chunk`` at most."""
+        lk = np.asarray(self.line_keys, np.uint64)
+        starts = np.flatnonzero(np.r_[True, lk[1:] != lk[:-1]])
+        ends = np.r_[starts[1:], len(lk)]
+        return [(int(c0), int(min(c0 + chunk, b))) for a, b in zip(starts, ends) for c0 in range(a, b, chunk)]

@@ -133,6 +133,45 @@ def test_line_reprojection_jacobians(seed, variant):
     check_jacobians(f, v, eps=1e-6, rtol=2e-4, atol=1e-6)
 
 
+@pytest.mark.parametrize("with_rot", [False, True])
+def test_line_reprojection_set_equals_its_factors(with_rot):
+    """The vectorised set (one call per linearisation) gives the factors' cost and Gauss-Newton system exactly."""
+    rng = np.random.default_rng(11)
+    v = gtsam.Values()
+    lk, ck, rk, eps, dirs, Rs = [], [], [], [], [], []
+    for line, nobs in enumerate([3, 11, 1]):  # 11 > chunk 8: one line in two factors
+        A, lam, K, C, R, ep = _reprojection_state(rng, nobs)
+        v.insert(gtsam.symbol("l", line), lam)
+        for j, (c, Rw) in enumerate(zip(C, R)):
+            cam = 100 * line + j
+            v.insert(gtsam.symbol("c", cam), c)
+            v.insert(gtsam.symbol("r", cam), gtsam.Rot3(Rw))
+            lk.append(gtsam.symbol("l", line))
+            ck.append(gtsam.symbol("c", cam))
+            rk.append(gtsam.symbol("r", cam))
+        eps.append(ep)
+        dirs.append(np.broadcast_to(A, (nobs, 3)))
+        Rs.append(R)
+    rep = factors.LineReprojectionSet(lk, ck, np.concatenate(eps), np.concatenate(dirs), K, 0.7,
+                                      rotation_keys=rk if with_rot else None,
+                                      R_wc_fixed=None if with_rot else np.concatenate(Rs))
+    assert len(rep) == 15 and rep.runs(8) == [(0, 3), (3, 11), (11, 14), (14, 15)]
+    g = gtsam.NonlinearFactorGraph()
+    for f in rep.factors(8):
+        g.add(f)
+    assert g.size() == 4
+    assert rep.error(v) == pytest.approx(g.error(v), rel=1e-12)
+    assert rep.error(v) > 1.0  # the state is off the observations on purpose
+    ref, mine = g.linearize(v), rep.linearize(v)
+    assert mine.size() == 15
+    keys = sorted(set(ref.keys()))
+    order = gtsam.Ordering()
+    for k in keys:
+        order.push_back(k)
+    for a, b in zip(mine.hessian(order), ref.hessian(order)):  # (A^T A, A^T b)
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.abs(b).max())
+
+
 def test_line_reprojection_is_segment_averaged_distance():
     rng = np.random.default_rng(5)
     A, lam, K, C, R, ep = _reprojection_state(rng, 3)
