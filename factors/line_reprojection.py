@@ -22,6 +22,13 @@ residuals stacked, which keeps the number of Python callbacks low (see
   rotations are not variables (phase 1) they are constants bound in the factor;
 * focal: a 1-vector ``f`` = fx in pixels; fy = f * fy0 / fx0 keeps the aspect
   of the base ``K``; the principal point is fixed. Absent: ``K`` is constant.
+
+The residuals and their analytic Jacobians are computed in one place,
+:func:`reprojection_terms`, vectorised over observations. The factor's callback
+uses it for its few observations; :class:`LineReprojectionSet` uses it for all of
+a graph's observations at once, so that an optimiser driven from Python
+linearises them in one call (measured, 300 frames, ~2,800 tracks: the bundle
+adjustment 23 -> 10 s).
 """
 from __future__ import annotations
 
