@@ -37,7 +37,7 @@ import functools
 import gtsam
 import numpy as np
 
-from factors.robust import noise_model
+from factors.robust import noise_model, robust_loss, robust_weight
 
 _S3 = 1.0 / (2.0 * np.sqrt(3.0))
 
@@ -193,7 +193,10 @@ class LineReprojectionSet:
 
     The same residuals and analytic Jacobians as :func:`line_reprojection_factor`
     (both come from :func:`reprojection_terms`), for all of a graph's
-    observations at once, with isotropic Gaussian noise of ``sigma`` pixels:
+    observations at once, with isotropic Gaussian noise of ``sigma`` pixels
+    (and, when ``robust`` is not "none", that kernel with threshold ``k`` on
+    each observation's whitened residual norm, as gtsam's ``Robust`` noise model on
+    a factor of one observation):
     :meth:`error` is what the factors add to ``graph.error`` and
     :meth:`linearize` the ``gtsam.GaussianFactorGraph`` they linearise to (one
     ``JacobianFactor`` per observation on its line, centre and, when they are
@@ -205,7 +208,10 @@ class LineReprojectionSet:
     """
 
     def __init__(self, line_keys, center_keys, endpoints: np.ndarray, directions: np.ndarray, K: np.ndarray,
-                 sigma: float, rotation_keys=None, R_wc_fixed: np.ndarray | None = None):
+                 sigma: float, rotation_keys=None, R_wc_fixed: np.ndarray | None = None, robust: str = "none",
+                 k: float = 1.345):
+        robust_weight(np.zeros(1), robust, k)  # an unknown kernel is an error here
+        self.robust, self.k = robust, float(k)
         self.endpoints = np.ascontiguousarray(endpoints, dtype=np.float64).reshape(-1, 4)
         n = len(self.endpoints)
         self.directions = np.ascontiguousarray(directions, dtype=np.float64).reshape(n, 3)
@@ -247,16 +253,21 @@ class LineReprojectionSet:
         return reprojection_terms(self.endpoints, self.directions, lam, C, R, self.K)
 
     def error(self, values: gtsam.Values) -> float:
-        """Returns 0.5 * the sum of the whitened squared residuals (as ``graph.error`` of the factors)."""
+        """Returns the kernel's cost summed over the observations' whitened residual norms (as ``graph.error`` of the factors)."""
         r = self.residuals(values)
-        return 0.5 * float(np.sum(r * r)) / self.sigma**2
+        return float(np.sum(robust_loss(np.linalg.norm(r, axis=1) / self.sigma, self.robust, self.k)))
 
     def linearize(self, values: gtsam.Values) -> gtsam.GaussianFactorGraph:
-        """Returns the whitened linearisation at ``values``: ``||J delta + r||^2 / sigma^2`` per observation."""
+        """Returns the whitened linearisation at ``values``: ``w ||J delta + r||^2 / sigma^2`` per observation (``w``
+        the kernel's weight at the residual, 1 without one)."""
         lam, C, R = self._state(values)
         r, J_l, J_c, J_r, _ = reprojection_terms(self.endpoints, self.directions, lam, C, R, self.K, jacobians=True)
-        w = 1.0 / self.sigma
+        w = np.full(len(r), 1.0 / self.sigma)
+        if self.robust != "none":  # iteratively reweighted, as gtsam's Robust::WhitenSystem
+            w *= np.sqrt(robust_weight(np.linalg.norm(r, axis=1) * w, self.robust, self.k))
+        w = w[:, None]
         b = list(-w * r)
+        w = w[:, :, None]
         A_l, A_c = list(w * J_l), list(w * J_c)
         gfg = gtsam.GaussianFactorGraph()
         unit = self._unit
@@ -271,10 +282,13 @@ class LineReprojectionSet:
 
     def factors(self, chunk: int = 8, focal_key: int | None = None) -> list[gtsam.CustomFactor]:
         """Returns the same terms as :func:`line_reprojection_factor` s, each on a run of one line's consecutive
-        observations (``chunk`` at most), with the focal length ``focal_key`` as a variable when given."""
+        observations (``chunk`` at most; one with a robust kernel, which weighs each observation on its own),
+        with the focal length ``focal_key`` as a variable when given."""
+        if self.robust != "none":
+            chunk = 1
         return [line_reprojection_factor(
             self.line_keys[c0], self.center_keys[c0:c1], self.endpoints[c0:c1], self.directions[c0], self.K,
-            noise_model(2 * (c1 - c0), self.sigma),
+            noise_model(2 * (c1 - c0), self.sigma, self.robust, self.k),
             rotation_keys=None if self.rotation_keys is None else self.rotation_keys[c0:c1],
             R_wc_fixed=None if self.R_fixed is None else self.R_fixed[c0:c1], focal_key=focal_key)
             for c0, c1 in self.runs(chunk)]

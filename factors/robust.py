@@ -58,6 +58,21 @@ def robust_weight(whitened: np.ndarray, robust: str = "none", k: float = 1.345) 
     raise ValueError(f"unknown robust kernel {robust!r}; expected one of {ROBUST_KERNELS}")
 
 
+def robust_loss(whitened: np.ndarray, robust: str = "none", k: float = 1.345) -> np.ndarray:
+    """Returns the kernel's cost at whitened residual norms (0.5 r^2 for "none"), as gtsam's m-estimators' ``loss``; vectorised."""
+    r = np.abs(np.asarray(whitened, dtype=np.float64))
+    name = robust.lower()
+    if name == "none":
+        return 0.5 * r**2
+    if name == "huber":
+        return np.where(r <= k, 0.5 * r**2, k * r - 0.5 * k**2)
+    if name == "cauchy":
+        return 0.5 * k**2 * np.log1p((r / k) ** 2)
+    if name == "geman_mcclure":
+        return 0.5 * k**2 * r**2 / (k**2 + r**2)
+    raise ValueError(f"unknown robust kernel {robust!r}; expected one of {ROBUST_KERNELS}")
+
+
 def projection_noise(normal: np.ndarray, sigma: float, robust: str = "none", k: float = 1.345):
     """Returns a 3-dim Gaussian noise model that whitens a 3-vector v to ``[n . v / sigma, 0, 0]``.
 

@@ -240,6 +240,23 @@ class GraphConfig:
     imu_prior: bool = True
     relation_weight: float = 1e4  # colinearity / coplanarity weight relative to reprojection (paper)
     reprojection_sigma_px: float = 1.0
+    # kernel on each line observation's reprojection residual ("none" | "huber" | "cauchy" | "geman_mcclure"),
+    # threshold in sigmas per phase 1, 2, 3 (0: none in that phase); in phase 1 reprojection_robust_widen times
+    # the initial (linear solve's) RMS residual in sigmas, within [that threshold, reprojection_robust_k_max]:
+    # graduated, the kernel starts as wide as the residuals are. Our addition: a track that jumps between two
+    # edges where they cross in the image (measured, a swaying living capture: 20 of 87 tracks hold segments of
+    # two true edges, 5 of them 81 % of the squared residual) is otherwise averaged into a line that fits
+    # neither, and the poses bend to it. Measured (tools/bench.py --seeds 5 [--seed 50 | --sway 0.05], medians living/bedroom/office,
+    # against "none"): corner reprojection selection 0.77/0.72/0.82 -> 0.72/0.72/0.76 px, kept back
+    # 0.82/0.74/0.75 -> 0.71/0.72/0.72, swaying 1.13/0.75/1.19 -> 0.72/0.68/0.91 (captures above 1 px of 45:
+    # 15 -> 6); centre err. 1.16/0.68/1.59 -> 1.47/0.66/1.25 %, 1.20/0.71/1.34 -> 1.01/0.70/1.34 %,
+    # 1.05/1.27/2.10 -> 0.92/0.93/2.03 %; worst capture 5.5 -> 3.5 % (kept-back bedroom 81: 5.5 -> 0.4 %,
+    # 6.9 -> 0.8 px). At 3 from phase 1 on: selection living 30 went 1.6 -> 5.4 %; at 10 in phase 1 kept-back
+    # bedroom 81 stayed at 6.4 %; from phase 2 on it misses tracks that break phase 1 (tests/test_graph.py)
+    reprojection_robust: str = "geman_mcclure"
+    reprojection_robust_k: tuple[float, ...] = (3.0, 3.0, 3.0)
+    reprojection_robust_widen: float = 2.5
+    reprojection_robust_k_max: float = 10.0
     imu_sigma_deg: float = 0.2  # relative-rotation prior between neighbouring frames
     # "none" | "huber" | "cauchy" | "geman_mcclure" (relations only). Measured: huber lets false coplanarities
     # drag lines; Cauchy's cost keeps growing (log) with a false relation's residual, and a quarter of the

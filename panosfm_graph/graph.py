@@ -15,7 +15,9 @@ Variables (keys made by :func:`center_key`, :func:`rotation_key`, ...):
 
 Factors (``factors`` package), switched by :class:`GraphConfig`:
 line reprojection (one factor per chunk of a track's observations, sigma
-``reprojection_sigma_px``), colinearity and coplanarity/floor (sigma
+``reprojection_sigma_px``; our addition: a Geman-McClure kernel on each observation,
+``reprojection_robust``, graduated over the phases by ``reprojection_robust_k``, so that a track
+that jumps between two edges fits the one most of its segments follow), colinearity and coplanarity/floor (sigma
 ``reprojection_sigma_px / sqrt(relation_weight)``: the paper's weights 1 and
 1e4; coplanarity and floor additionally divided by sqrt(support) when
 ``support_weighting`` and robustified with ``robust`` — Geman-McClure by default:
@@ -209,13 +211,19 @@ def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase:
     ep = pre.segments.endpoints.astype(np.float64)
     rel_sigma = _relation_sigma(config)
     batches = []
+    ks = tuple(config.reprojection_robust_k) or (0.0,)
+    rep_k = float(ks[min(phase, len(ks)) - 1])
+    if phase == 1 and rep_k > 0:  # graduated: at first as wide as the initial residuals
+        wide = config.reprojection_robust_widen * gauge.get("reprojection_rms_initial", 0.0) / config.reprojection_sigma_px
+        rep_k = float(np.clip(wide, rep_k, max(rep_k, config.reprojection_robust_k_max))) if np.isfinite(wide) else rep_k
+    rep_robust = config.reprojection_robust if rep_k > 0 else "none"
     if config.reprojection and len(prob.obs_seg):
         fr = prob.obs_frame
         rep = factors.LineReprojectionSet(
             [line_key(t) for t in prob.obs_track], [center_key(i) for i in fr], ep[prob.obs_seg],
             prob.directions[prob.obs_track], K, config.reprojection_sigma_px,
             rotation_keys=[rotation_key(i) for i in fr] if phase >= 2 else None,
-            R_wc_fixed=R_fixed[fr] if phase < 2 else None)
+            R_wc_fixed=R_fixed[fr] if phase < 2 else None, robust=rep_robust, k=rep_k)
         with_focal = phase >= 3 and gauge.get("focal_free", True)
         if with_focal or not batched:
             for f in rep.factors(CHUNK_OBS, FOCAL_KEY if with_focal else None):
@@ -503,6 +511,7 @@ def bundle_adjust(pre: Preprocessed, tracks: Tracks, relations: Relations, initi
         values.insert(FLOOR_KEY, np.array([gauge["floor_h"]]))
     residuals["reprojection_rms_px_initial"] = _reprojection_rms(pre, prob, initial.lines.taylor, initial.R_wc,
                                                                  initial.centers, K)
+    gauge["reprojection_rms_initial"] = residuals["reprojection_rms_px_initial"]
     phases = sorted(set(config.phases)) or [1]
     last = phases[-1]
     n_rejected = 0
@@ -703,11 +712,13 @@ def focal_sigma(pre: Preprocessed, relations: Relations, prob: _Problem, R_wc: n
     vanishing point is at infinity and the focal trades off against the
     rotation angles), and an undetermined focal drifts with the smallest bias
     (measured: 512 -> 520 px, lines 3 cm -> 23 cm from the true surfaces).
+    The reprojection terms are taken without their kernel here (information, not fit).
     Weak priors (10 m, 1 rad) on every other variable keep the marginal
     computable when some line is undetermined; they do not change the focal's.
     """
     g = dict(gauge, focal_free=True)
-    graph, _, _ = _build_graph(pre, relations, prob, 3, R_wc, K, np.zeros_like(rel_mask), config, g)
+    plain = dataclasses.replace(config, reprojection_robust="none")  # a kernel would make one factor per observation
+    graph, _, _ = _build_graph(pre, relations, prob, 3, R_wc, K, np.zeros_like(rel_mask), plain, g)
     weak3 = gtsam.noiseModel.Isotropic.Sigma(3, 10.0)
     weak_r = gtsam.noiseModel.Isotropic.Sigma(3, 1.0)
     for k in values.keys():

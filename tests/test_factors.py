@@ -133,8 +133,8 @@ def test_line_reprojection_jacobians(seed, variant):
     check_jacobians(f, v, eps=1e-6, rtol=2e-4, atol=1e-6)
 
 
-@pytest.mark.parametrize("with_rot", [False, True])
-def test_line_reprojection_set_equals_its_factors(with_rot):
+@pytest.mark.parametrize("with_rot,robust", [(False, "none"), (True, "none"), (True, "huber"), (False, "cauchy")])
+def test_line_reprojection_set_equals_its_factors(with_rot, robust):
     """The vectorised set (one call per linearisation) gives the factors' cost and Gauss-Newton system exactly."""
     rng = np.random.default_rng(11)
     v = gtsam.Values()
@@ -154,14 +154,19 @@ def test_line_reprojection_set_equals_its_factors(with_rot):
         Rs.append(R)
     rep = factors.LineReprojectionSet(lk, ck, np.concatenate(eps), np.concatenate(dirs), K, 0.7,
                                       rotation_keys=rk if with_rot else None,
-                                      R_wc_fixed=None if with_rot else np.concatenate(Rs))
+                                      R_wc_fixed=None if with_rot else np.concatenate(Rs), robust=robust, k=2.0)
     assert len(rep) == 15 and rep.runs(8) == [(0, 3), (3, 11), (11, 14), (14, 15)]
     g = gtsam.NonlinearFactorGraph()
     for f in rep.factors(8):
         g.add(f)
-    assert g.size() == 4
+    assert g.size() == (4 if robust == "none" else 15)  # a kernel weighs each observation: one factor each
     assert rep.error(v) == pytest.approx(g.error(v), rel=1e-12)
     assert rep.error(v) > 1.0  # the state is off the observations on purpose
+    if robust != "none":  # some observations are beyond the kernel's threshold: the kernel matters
+        plain = factors.LineReprojectionSet(lk, ck, np.concatenate(eps), np.concatenate(dirs), K, 0.7,
+                                            rotation_keys=rk if with_rot else None,
+                                            R_wc_fixed=None if with_rot else np.concatenate(Rs))
+        assert rep.error(v) < 0.9 * plain.error(v)
     ref, mine = g.linearize(v), rep.linearize(v)
     assert mine.size() == 15
     keys = sorted(set(ref.keys()))
@@ -322,3 +327,16 @@ def test_spin_knots_interpolate_by_turn():
     assert j.max() == 4 and alpha[-1] == pytest.approx(1.0)
     j0, a0, n0 = factors.spin_knots(turned, 0.0)
     assert n0 == 1 and not j0.any() and not a0.any()
+
+
+@pytest.mark.parametrize("name", ["none", "huber", "cauchy", "geman_mcclure"])
+def test_robust_loss_and_weight_equal_gtsam(name):
+    e = np.array([0.0, 0.3, 1.0, 2.5, 7.0])
+    est = factors.robust_kernel(name, 1.7)
+    loss, weight = factors.robust_loss(e, name, 1.7), factors.robust_weight(e, name, 1.7)
+    if est is None:
+        np.testing.assert_allclose(loss, 0.5 * e**2)
+        np.testing.assert_allclose(weight, 1.0)
+    else:
+        np.testing.assert_allclose(loss, [est.loss(x) for x in e], rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(weight[1:], [est.weight(x) for x in e[1:]], rtol=1e-12)

@@ -136,6 +136,52 @@ def test_reprojection_off_leaves_relations_only(problem):
     assert off.residuals["frames_undetermined"] == p.n_frames
 
 
+def _merge_short_tracks(p, n_pairs):
+    """Returns the problem's tracks with ``n_pairs`` short tracks given to long ones of the same axis seen in
+    other frames: each of those long tracks now jumps between two lines (as a tracker that swaps two nearby
+    edges where they cross in the image)."""
+    tr, fr = p.tracks, p.preprocessed.segments.frame
+    cnt = np.bincount(tr.track_of[tr.track_of >= 0], minlength=tr.n)
+    track_of, used, order = tr.track_of.copy(), set(), np.argsort(-cnt, kind="stable")
+    for a in order:
+        if len(used) >= 2 * n_pairs:
+            break
+        if a in used or cnt[a] < 6:
+            continue
+        fa = set(fr[tr.track_of == a].tolist())
+        for b in order[::-1]:
+            if (b != a and b not in used and tr.axis[b] == tr.axis[a] and 2 <= cnt[b] <= cnt[a] // 2
+                    and not fa & set(fr[tr.track_of == b].tolist())):
+                track_of[tr.track_of == b] = a
+                used |= {int(a), int(b)}
+                break
+    assert len(used) == 2 * n_pairs
+    return dataclasses.replace(tr, track_of=track_of)
+
+
+def test_reprojection_kernel_resists_tracks_that_jump_between_lines(problem):
+    p = problem
+    bad = _merge_short_tracks(p, 6)
+    init = perturbed(p)
+    diam = np.max(np.linalg.norm(p.gt_centers[:, None] - p.gt_centers[None], axis=2))
+
+    def centre_error(tracks, cfg):
+        sol = bundle_adjust(p.preprocessed, tracks, p.relations, init, cfg)
+        reg = sol.registered
+        s, R, t = umeyama(sol.centers[reg], p.gt_centers[reg])
+        e = np.linalg.norm(s * sol.centers[reg] @ R.T + t - p.gt_centers[reg], axis=1)
+        return np.median(e) / diam, reg.mean()
+
+    robust = FAST  # the default kernel, graduated
+    assert robust.reprojection_robust == "geman_mcclure"
+    plain = dataclasses.replace(FAST, reprojection_robust="none")
+    clean, _ = centre_error(p.tracks, robust)
+    kept, reg = centre_error(bad, robust)
+    broken, _ = centre_error(bad, plain)
+    assert clean < 0.02 and kept < 1.5 * clean and reg > 0.9, (clean, kept, reg)
+    assert broken > 5 * kept, (broken, kept)  # least squares averages the two lines and the sweep breaks
+
+
 def test_false_relations_are_rejected():
     p = make_problem("office", 40, size=(480, 270), seed=2, pixel_noise_px=0.5, false_relation_ratio=0.1,
                      imu_drift_deg=0.4)
