@@ -253,7 +253,8 @@ class LineReprojectionSet:
         return reprojection_terms(self.endpoints, self.directions, lam, C, R, self.K)
 
     def error(self, values: gtsam.Values) -> float:
-        """Returns the kernel's cost summed over the observations' whitened residual norms (as ``graph.error`` of the factors)."""
+        """Returns the kernel's cost summed over the observations' whitened residual norms (``graph.error`` of
+        the factors)."""
         r = self.residuals(values)
         return float(np.sum(robust_loss(np.linalg.norm(r, axis=1) / self.sigma, self.robust, self.k)))
 
@@ -276,16 +277,14 @@ class LineReprojectionSet:
                 gfg.push_back(gtsam.JacobianFactor(kl, al, kc, ac, bb, unit))
         else:
             A_r = list(w * J_r)
-            for kl, al, kc, ac, kr, ar, bb in zip(self.line_keys, A_l, self.center_keys, A_c, self.rotation_keys, A_r, b):
+            for kl, al, kc, ac, kr, ar, bb in zip(self.line_keys, A_l, self.center_keys, A_c, self.rotation_keys, A_r,
+                                                  b):
                 gfg.push_back(gtsam.JacobianFactor(kl, al, kc, ac, kr, ar, bb, unit))
         return gfg
 
     def factors(self, chunk: int = 8, focal_key: int | None = None) -> list[gtsam.CustomFactor]:
-        """Returns the same terms as :func:`line_reprojection_factor` s, each on a run of one line's consecutive
-        observations (``chunk`` at most; one with a robust kernel, which weighs each observation on its own),
+        """Returns the same terms as :func:`line_reprojection_factor` s, one on each of :meth:`runs` ``(chunk)``,
         with the focal length ``focal_key`` as a variable when given."""
-        if self.robust != "none":
-            chunk = 1
         return [line_reprojection_factor(
             self.line_keys[c0], self.center_keys[c0:c1], self.endpoints[c0:c1], self.directions[c0], self.K,
             noise_model(2 * (c1 - c0), self.sigma, self.robust, self.k),
@@ -294,7 +293,10 @@ class LineReprojectionSet:
             for c0, c1 in self.runs(chunk)]
 
     def runs(self, chunk: int) -> list[tuple[int, int]]:
-        """Returns the (start, stop) observation ranges of :meth:`factors`: one line's consecutive observations, ``chunk`` at most."""
+        """Returns the (start, stop) observation ranges of :meth:`factors`: one line's consecutive observations,
+        ``chunk`` at most -- one with a robust kernel, which weighs each observation on its own."""
+        if self.robust != "none":
+            chunk = 1
         lk = np.asarray(self.line_keys, np.uint64)
         starts = np.flatnonzero(np.r_[True, lk[1:] != lk[:-1]])
         ends = np.r_[starts[1:], len(lk)]

@@ -59,7 +59,8 @@ def robust_weight(whitened: np.ndarray, robust: str = "none", k: float = 1.345) 
 
 
 def robust_loss(whitened: np.ndarray, robust: str = "none", k: float = 1.345) -> np.ndarray:
-    """Returns the kernel's cost at whitened residual norms (0.5 r^2 for "none"), as gtsam's m-estimators' ``loss``; vectorised."""
+    """Returns the kernel's cost at whitened residual norms (0.5 r^2 for "none"), as gtsam's m-estimators'
+    ``loss``; vectorised."""
     r = np.abs(np.asarray(whitened, dtype=np.float64))
     name = robust.lower()
     if name == "none":

@@ -246,8 +246,8 @@ class GraphConfig:
     # graduated, the kernel starts as wide as the residuals are. Our addition: a track that jumps between two
     # edges where they cross in the image (measured, a swaying living capture: 20 of 87 tracks hold segments of
     # two true edges, 5 of them 81 % of the squared residual) is otherwise averaged into a line that fits
-    # neither, and the poses bend to it. Measured (tools/bench.py --seeds 5 [--seed 50 | --sway 0.05], medians living/bedroom/office,
-    # against "none"): corner reprojection selection 0.77/0.72/0.82 -> 0.72/0.72/0.76 px, kept back
+    # neither, and the poses bend to it. Measured (tools/bench.py --seeds 5 [--seed 50 | --sway 0.05], medians
+    # living/bedroom/office, against "none"): corner reprojection selection 0.77/0.72/0.82 -> 0.72/0.72/0.76 px, kept back
     # 0.82/0.74/0.75 -> 0.71/0.72/0.72, swaying 1.13/0.75/1.19 -> 0.72/0.68/0.91 (captures above 1 px of 45:
     # 15 -> 6); centre err. 1.16/0.68/1.59 -> 1.47/0.66/1.25 %, 1.20/0.71/1.34 -> 1.01/0.70/1.34 %,
     # 1.05/1.27/2.10 -> 0.92/0.93/2.03 %; worst capture 5.5 -> 3.5 % (kept-back bedroom 81: 5.5 -> 0.4 %,

@@ -17,8 +17,8 @@ Factors (``factors`` package), switched by :class:`GraphConfig`:
 line reprojection (one factor per chunk of a track's observations, sigma
 ``reprojection_sigma_px``; our addition: a Geman-McClure kernel on each observation,
 ``reprojection_robust``, graduated over the phases by ``reprojection_robust_k``, so that a track
-that jumps between two edges fits the one most of its segments follow), colinearity and coplanarity/floor (sigma
-``reprojection_sigma_px / sqrt(relation_weight)``: the paper's weights 1 and
+that jumps between two edges fits the one most of its segments follow), colinearity and
+coplanarity/floor (sigma ``reprojection_sigma_px / sqrt(relation_weight)``: the paper's weights 1 and
 1e4; coplanarity and floor additionally divided by sqrt(support) when
 ``support_weighting`` and robustified with ``robust`` — Geman-McClure by default:
 measured on synthetic problems with 10 % injected false relations, Huber lets
@@ -196,7 +196,7 @@ def relation_sigmas(relations: Relations, config: GraphConfig) -> np.ndarray:
 def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase: int, R_fixed: np.ndarray,
                  K: np.ndarray, rel_mask: np.ndarray, config: GraphConfig, gauge: dict,
                  batched: bool = False) -> tuple[gtsam.NonlinearFactorGraph, dict, list]:
-    """Returns (graph, factor counts by type, batches) for one phase; ``rel_mask`` selects relations of ``prob.rel_idx``.
+    """Returns (graph, factor counts by type, batches) for one phase (relations of ``prob.rel_idx[rel_mask]``).
 
     With ``batched`` the line reprojection terms come as a
     :class:`factors.LineReprojectionSet` in ``batches`` (for
@@ -214,8 +214,10 @@ def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase:
     ks = tuple(config.reprojection_robust_k) or (0.0,)
     rep_k = float(ks[min(phase, len(ks)) - 1])
     if phase == 1 and rep_k > 0:  # graduated: at first as wide as the initial residuals
-        wide = config.reprojection_robust_widen * gauge.get("reprojection_rms_initial", 0.0) / config.reprojection_sigma_px
-        rep_k = float(np.clip(wide, rep_k, max(rep_k, config.reprojection_robust_k_max))) if np.isfinite(wide) else rep_k
+        wide = config.reprojection_robust_widen * gauge.get("reprojection_rms_initial", 0.0)
+        wide /= config.reprojection_sigma_px
+        if np.isfinite(wide):
+            rep_k = float(np.clip(wide, rep_k, max(rep_k, config.reprojection_robust_k_max)))
     rep_robust = config.reprojection_robust if rep_k > 0 else "none"
     if config.reprojection and len(prob.obs_seg):
         fr = prob.obs_frame
@@ -324,7 +326,7 @@ def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     an indeterminate linear system (a direction no factor constrains, e.g.
     Lambda along A without colinearity) raises the damping, and the damping
     never goes below the smallest that solved since (measured, 300 frames: every
-    other solve had failed so, at 0.15 s each). ``batches``
+    other solve had failed so, each at about half a solve's time). ``batches``
     (e.g. :class:`factors.LineReprojectionSet`) are more terms of the cost,
     each with ``error(values)`` and ``linearize(values)``. ``info``:
     cost_before, cost_after, iterations, seconds.
