@@ -53,14 +53,29 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+def _endpoint_distances(endpoints: np.ndarray, direction: np.ndarray, lam: np.ndarray, C: np.ndarray, R: np.ndarray,
+                        fx: float, fy: float, cx: float, cy: float):
+    """Returns (n, m1, m2, s, d1, d2): the camera-frame interpretation-plane normals, the endpoints' normalised
+    rays, the image-line scale and the endpoints' signed pixel distances to the projected lines; vectorised."""
+    w = _cross(lam - C, direction)                         # (N, 3) world normal of the interpretation plane
+    n = np.einsum("nji,nj->ni", R, w)                      # camera frame
+    N = len(n)
+    m1 = np.empty((N, 3))
+    m2 = np.empty((N, 3))
+    m1[:, 0] = (endpoints[:, 0] - cx) / fx
+    m1[:, 1] = (endpoints[:, 1] - cy) / fy
+    m2[:, 0] = (endpoints[:, 2] - cx) / fx
+    m2[:, 1] = (endpoints[:, 3] - cy) / fy
+    m1[:, 2] = m2[:, 2] = 1.0
+    s = np.sqrt((n[:, 0] / fx) ** 2 + (n[:, 1] / fy) ** 2)
+    return n, m1, m2, s, (n * m1).sum(1) / s, (n * m2).sum(1) / s
+
+
 def segment_distances(endpoints: np.ndarray, taylor: np.ndarray, direction: np.ndarray, R_wc: np.ndarray,
                       centers: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Returns (d1, d2): signed pixel distances of the segments' endpoints to the projected lines; vectorised over (N,)."""
-    n = np.einsum("nji,nj->ni", R_wc, np.cross(taylor - centers, direction))
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    s = np.hypot(n[:, 0] / fx, n[:, 1] / fy)
-    d1 = (n[:, 0] * (endpoints[:, 0] - cx) / fx + n[:, 1] * (endpoints[:, 1] - cy) / fy + n[:, 2]) / s
-    d2 = (n[:, 0] * (endpoints[:, 2] - cx) / fx + n[:, 1] * (endpoints[:, 3] - cy) / fy + n[:, 2]) / s
+    *_, d1, d2 = _endpoint_distances(np.asarray(endpoints, dtype=np.float64), direction, taylor, centers, R_wc,
+                                     K[0, 0], K[1, 1], K[0, 2], K[1, 2])
     return d1, d2
 
 
@@ -85,19 +100,8 @@ def reprojection_terms(endpoints: np.ndarray, direction: np.ndarray, lam: np.nda
         fx, fy = fx0, fy0
     else:
         fy = fx * fy0 / fx0
-    w = _cross(lam - C, direction)                         # (N, 3) world normal of the interpretation plane
-    n = np.einsum("nji,nj->ni", R, w)                      # camera frame
+    n, m1, m2, s, d1, d2 = _endpoint_distances(endpoints, direction, lam, C, R, fx, fy, cx, cy)
     N = len(n)
-    m1 = np.empty((N, 3))
-    m2 = np.empty((N, 3))
-    m1[:, 0] = (endpoints[:, 0] - cx) / fx
-    m1[:, 1] = (endpoints[:, 1] - cy) / fy
-    m2[:, 0] = (endpoints[:, 2] - cx) / fx
-    m2[:, 1] = (endpoints[:, 3] - cy) / fy
-    m1[:, 2] = m2[:, 2] = 1.0
-    s = np.sqrt((n[:, 0] / fx) ** 2 + (n[:, 1] / fy) ** 2)
-    d1 = (n * m1).sum(1) / s
-    d2 = (n * m2).sum(1) / s
     r = np.empty((N, 2))
     r[:, 0] = 0.5 * (d1 + d2)
     r[:, 1] = _S3 * (d1 - d2)

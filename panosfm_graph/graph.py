@@ -80,7 +80,6 @@ import gtsam
 import numpy as np
 
 import factors
-from factors.line_reprojection import segment_distances, segment_residuals
 
 from .config import GraphConfig
 from .data import FLOOR, JUNCTION, ORTHOGONAL, PARALLEL, Camera, LineModel, Preprocessed, Relations, Solution, Tracks
@@ -457,9 +456,9 @@ def _reprojection_rms(pre: Preprocessed, prob: _Problem, taylor: np.ndarray, R_w
     if len(prob.obs_seg) == 0:
         return 0.0
     t, f = prob.obs_track, prob.obs_frame
-    d1, d2 = segment_distances(pre.segments.endpoints[prob.obs_seg].astype(np.float64), taylor[t], prob.directions[t],
-                               R_wc[f], centers[f], K)
-    return float(np.sqrt(np.mean(np.sum(segment_residuals(d1, d2) ** 2, axis=1))))
+    r = factors.reprojection_terms(pre.segments.endpoints[prob.obs_seg].astype(np.float64), prob.directions[t],
+                                   taylor[t], centers[f], R_wc[f], K)
+    return float(np.sqrt(np.mean(np.sum(r**2, axis=1))))
 
 
 def relation_residuals(relations: Relations, directions: np.ndarray, taylor: np.ndarray, floor_h: float) -> np.ndarray:
