@@ -212,7 +212,10 @@ class LinearConfig:
     # with spin_knot_deg 0 here and in graph (a wandering stand point lets such a group slide). Off: on ideal
     # circles (tools/bench.py --seeds 5, registered and centre err. living/bedroom/office) 96/22/77 ->
     # 96/46/81 %, 1.15/0.66/1.37 -> 0.85/0.66/0.74 % (kept back 94/41/82 -> 95/67/85 %, 1.06/0.71/1.50 ->
-    # 1.26/0.61/0.78 %), but on spins that sway 5 cm 1.05/1.18/1.93 -> 2.78/3.28/4.64 %, 1.1 -> 1.3-1.4 px
+    # 1.26/0.61/0.78 %), but on spins that sway 5 cm 1.05/1.18/1.93 -> 2.78/3.28/4.64 %, 1.1 -> 1.3-1.4 px.
+    # Re-measured with the BA's reprojection kernel: ideal circles 97/23/85 -> 97/49/87 %, 1.47/0.66/1.25 ->
+    # 0.81/0.64/0.71 %; swaying 96/33/57 -> 97/47/88 %, 0.92/0.93/2.03 -> 2.38/3.52/4.65 % (worst 2.4 -> 26 %);
+    # with the stand point wandering (knots 90 deg here and in graph) swaying 1.36/2.16/1.98 %, worst 26 %
     spin_links: bool = False
     # ... and it holds the height of a frame whose lines do not (register_frames; with graph.spin_height). Off:
     # registered bedroom/office 23/78 -> 40/84 % (swaying spins 29/52 -> 35/84 %, kept-back seeds 41/82 ->
@@ -286,8 +289,14 @@ class GraphConfig:
     # spin prior (our addition; factors/spin_prior.py): std of a centre off the circle the phone describes about a
     # (slowly wandering) stand point, one arm for the whole sweep (m); 0: off (the paper). Without it, parts of
     # the sweep joined by few tracks take their own scale (measured: office capture 12, the middle of the
-    # sweep at 1/100 of the ends' scale, 36 % centre error); with it 0.6 % (linear.spin_weight on, see there)
-    spin_sigma_m: float = 0.05
+    # sweep at 1/100 of the ends' scale, 36 % centre error); with it 0.6 % (linear.spin_weight on, see there).
+    # 5 -> 2 cm (the linear solve's rows weigh about 1.2 cm; swaying 5 cm RMS, the true centres lie 0.4-2 cm RMS
+    # off the knotted circle): the arm's angle, which the lines barely see, drifted (office seed 0 of
+    # tools/bench_ba.py --real: the sweep turned 9 deg against the cameras, 6.1 -> 2.9 % centre err.). Measured
+    # (tools/bench.py --seeds 5, mean centre err. of the 15 captures, worst): selection 1.20 -> 1.10 % (2.4 ->
+    # 2.2), kept back 1.26 -> 1.26 % (3.5 -> 3.1; medians bedroom/office 0.70/1.34 -> 0.84/1.50), swaying
+    # 1.36 -> 1.23 % (2.4 -> 2.2); 3 cm on the swaying ones 1.27 %
+    spin_sigma_m: float = 0.02
     spin_vertical_ratio: float = 1.0  # ... the vertical std relative to the horizontal one
     spin_robust: str = "huber"  # ... its kernel (k = robust_k)
     spin_knot_deg: float = 90.0  # ... the stand point is interpolated between knots this turn apart (0: one stand point)
