@@ -307,6 +307,14 @@ class GraphConfig:
     # similarity's scale to the truth within 10 %): selection captures 2 -> 11 of 15, kept-back 1 -> 13,
     # swaying 3 -> 10 (5 frames: kept-back 14, swaying 9; 8 frames: selection 10)
     floor_below_lines_min_obs: int = 3
+    # ... and the metric scale is checked against the spin's arm (graph.py _check_arm): where the floor puts the
+    # arm outside this range (m; a phone held out in front is 0.3-0.45 m from the body's axis) the floor was
+    # not in view, and the model is scaled so that the arm is metric_arm_fallback_m (as linear.spin_arm_m) and
+    # reported as not metric ((0, 1e9): off). Measured (tools/bench.py --seeds 5, the 44 of 45 captures with a
+    # metric scale): it flags the 6 whose scale was more than 25 % off (0.44-0.60 and 4.3 x the truth; arms
+    # 0.59-0.74 m and 0.07 m) and none of the other 38 (arms 0.29-0.45 m); the arm gives them 0.82-1.10 x
+    metric_arm_range_m: tuple[float, float] = (0.15, 0.55)
+    metric_arm_fallback_m: float = 0.35
     reject_sigma: float = 5.0  # drop relations whose residual exceeds this many sigmas, then resolve
     incremental_batch: int | None = None  # frames per batch for incremental solves
     incremental_final_solve: bool = True  # after the last batch, solve everything once from the linear solution

@@ -578,7 +578,48 @@ def bundle_adjust(pre: Preprocessed, tracks: Tracks, relations: Relations, initi
         if config.floor_below_lines_min_obs > 0:
             sol = _floor_below_lines(sol, relations, prob, pre.manhattan.directions, residuals,
                                      config.floor_below_lines_min_obs)
-    return sol
+    return _check_arm(sol, pre.manhattan.directions, config)
+
+
+def spin_arm_length(centers: np.ndarray, R_wc: np.ndarray, manhattan: np.ndarray, knot_deg: float) -> float | None:
+    """Returns the length of the spin's arm (:func:`fit_spin`) through the finite centres, in their units (None: < 3)."""
+    from .linear import turned_degrees
+
+    ok = np.all(np.isfinite(centers), axis=1) & np.all(np.isfinite(R_wc), axis=(1, 2))
+    if ok.sum() < 3:
+        return None
+    j, alpha, n = factors.spin_knots(turned_degrees(R_wc[ok]), knot_deg)
+    _, arm = fit_spin(centers[ok], R_wc[ok][:, :, 2], manhattan, j, alpha, n)
+    return float(np.hypot(*arm))
+
+
+def _check_arm(sol: Solution, manhattan: np.ndarray, config: GraphConfig) -> Solution:
+    """Returns ``sol``, rescaled and marked not metric where its metric scale puts the spin's arm out of range.
+
+    Our addition. The metric scale rests on the floor (camera height), and the floor is rarely in
+    view (39 degrees of vertical field at 1.5 m see it only beyond 4 m): where only furniture tops
+    were taken for it the model came out 1.7-2.3 times too large. The phone's distance from the
+    body's axis is known to a few tens of percent (``metric_arm_range_m``); an arm outside that
+    range means the floor's scale is wrong, and the arm (``metric_arm_fallback_m``) is the better
+    one. ``residuals``: ``spin_arm_m`` (after any rescale), and ``spin_arm_m_from_floor`` with the
+    factor ``scale_from_arm`` when rescaled.
+    """
+    res = sol.residuals
+    arm = spin_arm_length(sol.centers, sol.R_wc, manhattan, config.spin_knot_deg)
+    res["spin_arm_m"] = arm
+    lo, hi = config.metric_arm_range_m
+    if arm is None or arm <= 0 or not sol.metric or lo <= arm <= hi:
+        return sol
+    s = config.metric_arm_fallback_m / arm
+    log.warning("BA: the metric scale puts the spin's arm at %.2f m (outside %.2f-%.2f m): the floor lines were "
+                "likely not the floor; scaled by %.3g so that the arm is %.2f m, scale reported arbitrary", arm, lo, hi, s,
+                config.metric_arm_fallback_m)
+    res["spin_arm_m_from_floor"] = arm
+    res["scale_from_arm"] = float(s)
+    res["spin_arm_m"] = float(config.metric_arm_fallback_m)
+    if "floor_height" in res:
+        res["floor_height"] = float(res["floor_height"]) * s
+    return dataclasses.replace(_scaled(sol, s), metric=False)
 
 
 def _floor_below_lines(sol: Solution, relations: Relations, prob: _Problem, manhattan: np.ndarray, residuals: dict,

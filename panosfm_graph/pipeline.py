@@ -76,7 +76,7 @@ class RunResult:
         arm = linear_cfg.get("spin_arm_m")
         by_arm = linear.get("scale") == "spin_arm" and arm is not None
         units = f"; units about metres: the spin's arm taken as {arm:g} m" if by_arm else ""
-        if s.get("metric"):
+        if s.get("metric") or str(s.get("scale", "")).startswith("arbitrary ("):
             lines.append(f"  scale       {s.get('scale', 'metric')}")
         elif linear_cfg.get("camera_height_m") is not None:
             lines.append(f"  scale       arbitrary (no floor line verified for --camera-height{units})")
@@ -214,7 +214,8 @@ def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config =
     with stage("export", timings):
         with atomic_output_dir(out_dir, keep=CACHE_KEEP) as tmp:
             summary = _summary(capture, segments, result, config, timings, resumed, t_start)
-            summary["warnings"] = warnings
+            summary["warnings"] = warnings + ([f"scale {summary['scale']}"] if summary["scale"].startswith("arbitrary (")
+                                              and config.linear.camera_height_m is not None else [])
             _export(tmp, capture, segments, result, summary, rerun=rerun, spawn=spawn, views=views)
     result.summary = summary
     return result
@@ -350,7 +351,7 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
                       else {k: 0 for k in RELATION_NAMES}),
         "metric": bool(sol.metric) if sol is not None else False,
         "scale": (_scale_text(config.linear.camera_height_m, n_floor, sol.residuals)
-                  if sol is not None and sol.metric else "arbitrary"),
+                  if sol is not None and sol.metric else _arbitrary_scale_text(sol, config)),
         "residuals": {"linear": linear_res,
                       "bundle_adjust": (sol.residuals if sol is not None and sol is not result.linear
                                         else None)},
@@ -374,6 +375,17 @@ def _scale_text(camera_height_m: float, n_floor: int, residuals: dict) -> str:
     source = (f"floor lowered to the deepest horizontal line (model scaled by 1/{lowered:.2f})" if lowered > 1.0
               else f"floor from {n_floor} line{'' if n_floor == 1 else 's'}")
     return f"metric (camera height {camera_height_m:.3f} m, {source})"
+
+
+def _arbitrary_scale_text(sol: Solution | None, config: Config) -> str:
+    """Returns ``arbitrary``, with why where the bundle adjustment took the scale from the spin's arm."""
+    res = sol.residuals if sol is not None and isinstance(sol.residuals, dict) else {}
+    if "scale_from_arm" not in res:
+        return "arbitrary"
+    lo, hi = config.graph.metric_arm_range_m
+    return (f"arbitrary (units about metres: with the floor lines the spin's arm came out "
+            f"{res['spin_arm_m_from_floor']:.2f} m, outside {lo:g}-{hi:g} m, so they were likely not the floor; "
+            f"the arm taken as {config.graph.metric_arm_fallback_m:g} m)")
 
 
 def _export(tmp: Path, capture: Capture, segments: Segments, result: RunResult, summary: dict, *,

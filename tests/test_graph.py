@@ -384,7 +384,8 @@ def test_floor_is_moved_below_the_deepest_horizontal_line():
                        LinearConfig(camera_height_m=H, floor_verify_ratio=0.0, tracks_first=False))
     scale = {}
     for n in (0, 3):
-        sol = bundle_adjust(p.preprocessed, p.tracks, rel, lin, dataclasses.replace(FAST, floor_below_lines_min_obs=n))
+        cfg = dataclasses.replace(FAST, floor_below_lines_min_obs=n, metric_arm_range_m=(0.0, 1e9))  # the floor alone
+        sol = bundle_adjust(p.preprocessed, p.tracks, rel, lin, cfg)
         reg = sol.registered
         s, _, _ = umeyama(sol.centers[reg], p.gt_centers[reg])
         scale[n] = s
@@ -393,6 +394,47 @@ def test_floor_is_moved_below_the_deepest_horizontal_line():
             assert room_z[sol.residuals["floor_from_line"]] < 0.05  # the line it went down to is on the floor
     assert scale[0] < 0.8, scale  # too large a model: the desk is taken for the floor
     assert abs(scale[3] - 1) < 0.05, scale
+
+
+def test_metric_scale_checked_against_the_spin_arm():
+    """The floor relations are all on furniture tops and nothing lower is taken for the floor: the metric model
+    comes out 2.2 times too large, its spin's arm 0.84 m. The arm check (``metric_arm_range_m``) scales it so
+    that the arm is 0.35 m (true: 0.38 m) and reports the scale arbitrary; where the floor is right the arm is
+    measured (within 3 %) and nothing changes."""
+    from panosfm_graph.config import LinearConfig
+    from panosfm_graph.data import FLOOR, Relations
+    from panosfm_graph.graph import spin_arm_length
+    from panosfm_graph.linear import solve_linear
+
+    p = make_problem("living", 48, (480, 270), seed=0, pixel_noise_px=0.3)
+    r = p.relations
+    floor_z = p.scene.to_world(np.zeros(3))[2]
+    room_z = (p.gt_track_lines[:, 2] + p.gt_track_lines[:, 5]) / 2 - floor_z
+    tops = np.flatnonzero((p.tracks.axis != 2) & (room_z > 0.3) & (room_z < 1.0))
+    keep = r.kind != FLOOR
+    rel = Relations(np.concatenate([r.kind[keep], np.full(len(tops), FLOOR, np.int8)]),
+                    np.concatenate([r.track_a[keep], tops.astype(np.int32)]),
+                    np.concatenate([r.track_b[keep], np.full(len(tops), -1, np.int32)]),
+                    np.concatenate([r.normal_axis[keep], np.full(len(tops), 2, np.int8)]),
+                    np.concatenate([r.support[keep], np.ones(len(tops), np.int32)]))
+    H = float(p.gt_centers[:, 2].mean() - floor_z)
+    lin = solve_linear(p.preprocessed, p.tracks, rel, p.camera,
+                       LinearConfig(camera_height_m=H, floor_verify_ratio=0.0, tracks_first=False))
+    true_arm = spin_arm_length(p.gt_centers, p.preprocessed.R_wc, p.preprocessed.manhattan.directions, 90.0)
+    out = {}
+    for name, lowered, arm_range in (("unchecked", 0, (0.0, 1e9)), ("checked", 0, GraphConfig().metric_arm_range_m),
+                                     ("floor right", 3, GraphConfig().metric_arm_range_m)):
+        sol = bundle_adjust(p.preprocessed, p.tracks, rel, lin,
+                            dataclasses.replace(FAST, floor_below_lines_min_obs=lowered, metric_arm_range_m=arm_range))
+        out[name] = (umeyama(sol.centers[sol.registered], p.gt_centers[sol.registered])[0], sol)
+    s, sol = out["unchecked"]
+    assert s < 0.6 and sol.metric and sol.residuals["spin_arm_m"] > 0.55, (s, sol.residuals["spin_arm_m"])
+    s, sol = out["checked"]
+    assert not sol.metric and abs(sol.residuals["spin_arm_m_from_floor"] - out["unchecked"][1].residuals["spin_arm_m"]) < 1e-6
+    assert abs(sol.residuals["spin_arm_m"] - 0.35) < 1e-9 and abs(s - true_arm / 0.35) < 0.05, s
+    s, sol = out["floor right"]
+    assert sol.metric and "scale_from_arm" not in sol.residuals and abs(s - 1) < 0.05, s
+    assert abs(sol.residuals["spin_arm_m"] / true_arm - 1) < 0.03, (sol.residuals["spin_arm_m"], true_arm)
 
 
 def test_floor_relations_the_linear_solve_dropped_stay_out():
