@@ -581,14 +581,22 @@ def bundle_adjust(pre: Preprocessed, tracks: Tracks, relations: Relations, initi
     return _check_arm(sol, pre.manhattan.directions, config)
 
 
-def spin_arm_length(centers: np.ndarray, R_wc: np.ndarray, manhattan: np.ndarray, knot_deg: float) -> float | None:
-    """Returns the length of the spin's arm (:func:`fit_spin`) through the finite centres, in their units (None: < 3)."""
+def spin_arm_length(centers: np.ndarray, R_wc: np.ndarray, manhattan: np.ndarray, knot_deg: float,
+                    min_turn_deg: float = 0.0) -> float | None:
+    """Returns the length of the spin's arm (:func:`fit_spin`) through the finite centres, in their units.
+
+    None with fewer than 3 centres or where they span less than ``min_turn_deg`` of turn (on a short
+    arc the arm and the stand point trade off).
+    """
     from .linear import turned_degrees
 
     ok = np.all(np.isfinite(centers), axis=1) & np.all(np.isfinite(R_wc), axis=(1, 2))
     if ok.sum() < 3:
         return None
-    j, alpha, n = factors.spin_knots(turned_degrees(R_wc[ok]), knot_deg)
+    turned = turned_degrees(R_wc[ok])
+    if float(np.ptp(turned)) < min_turn_deg:
+        return None
+    j, alpha, n = factors.spin_knots(turned, knot_deg)
     _, arm = fit_spin(centers[ok], R_wc[ok][:, :, 2], manhattan, j, alpha, n)
     return float(np.hypot(*arm))
 
@@ -601,11 +609,12 @@ def _check_arm(sol: Solution, manhattan: np.ndarray, config: GraphConfig) -> Sol
     were taken for it the model came out 1.7-2.3 times too large. The phone's distance from the
     body's axis is known to a few tens of percent (``metric_arm_range_m``); an arm outside that
     range means the floor's scale is wrong, and the arm (``metric_arm_fallback_m``) is the better
-    one. ``residuals``: ``spin_arm_m`` (after any rescale), and ``spin_arm_m_from_floor`` with the
-    factor ``scale_from_arm`` when rescaled.
+    one. Only over ``metric_arm_min_turn_deg`` of turn (not on the early batches of an incremental
+    solve). ``residuals``: ``spin_arm_m`` (after any rescale; None on a shorter turn), and
+    ``spin_arm_m_from_floor`` with the factor ``scale_from_arm`` when rescaled.
     """
     res = sol.residuals
-    arm = spin_arm_length(sol.centers, sol.R_wc, manhattan, config.spin_knot_deg)
+    arm = spin_arm_length(sol.centers, sol.R_wc, manhattan, config.spin_knot_deg, config.metric_arm_min_turn_deg)
     res["spin_arm_m"] = arm
     lo, hi = config.metric_arm_range_m
     if arm is None or arm <= 0 or not sol.metric or lo <= arm <= hi:
@@ -936,9 +945,10 @@ def bundle_adjust_incremental(pre: Preprocessed, tracks: Tracks, relations: Rela
             on_batch(k, sol)
         # next start: this batch's estimates where they exist, the initial values elsewhere
         done = sol.registered  # frames this batch determined (undetermined ones restart from ``initial``)
-        centers = np.where(done[:, None], sol.centers, initial.centers)
+        f = 1.0 / float(sol.residuals.get("scale_from_arm", 1.0))  # back to ``initial``'s scale (_check_arm)
+        centers = np.where(done[:, None], sol.centers * f, initial.centers)
         R_wc = np.where(done[:, None, None], sol.R_wc, initial.R_wc)
-        taylor = np.where((seen & sol.lines.valid)[:, None], sol.lines.taylor, initial.lines.taylor)
+        taylor = np.where((seen & sol.lines.valid)[:, None], sol.lines.taylor * f, initial.lines.taylor)
         current = dataclasses.replace(initial, R_wc=R_wc, centers=centers, camera=sol.camera,
                                       lines=dataclasses.replace(initial.lines, taylor=taylor))
     if config.incremental_final_solve and len(out) > 1:
