@@ -621,8 +621,8 @@ def _check_arm(sol: Solution, manhattan: np.ndarray, config: GraphConfig) -> Sol
         return sol
     s = config.metric_arm_fallback_m / arm
     log.warning("BA: the metric scale puts the spin's arm at %.2f m (outside %.2f-%.2f m): the floor lines were "
-                "likely not the floor; scaled by %.3g so that the arm is %.2f m, scale reported arbitrary", arm, lo, hi, s,
-                config.metric_arm_fallback_m)
+                "likely not the floor; scaled by %.3g so that the arm is %.2f m, scale reported arbitrary",
+                arm, lo, hi, s, config.metric_arm_fallback_m)
     res["spin_arm_m_from_floor"] = arm
     res["scale_from_arm"] = float(s)
     res["spin_arm_m"] = float(config.metric_arm_fallback_m)

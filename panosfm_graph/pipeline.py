@@ -76,7 +76,8 @@ class RunResult:
         arm = linear_cfg.get("spin_arm_m")
         by_arm = linear.get("scale") == "spin_arm" and arm is not None
         units = f"; units about metres: the spin's arm taken as {arm:g} m" if by_arm else ""
-        if s.get("metric") or str(s.get("scale", "")).startswith("arbitrary ("):
+        ba = (s.get("residuals") or {}).get("bundle_adjust") or {}
+        if s.get("metric") or "scale_from_arm" in ba:  # the scale text says how it was set
             lines.append(f"  scale       {s.get('scale', 'metric')}")
         elif linear_cfg.get("camera_height_m") is not None:
             lines.append(f"  scale       arbitrary (no floor line verified for --camera-height{units})")
@@ -214,8 +215,8 @@ def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config =
     with stage("export", timings):
         with atomic_output_dir(out_dir, keep=CACHE_KEEP) as tmp:
             summary = _summary(capture, segments, result, config, timings, resumed, t_start)
-            summary["warnings"] = warnings + ([f"scale {summary['scale']}"] if summary["scale"].startswith("arbitrary (")
-                                              and config.linear.camera_height_m is not None else [])
+            from_arm = result.solution is not None and "scale_from_arm" in (result.solution.residuals or {})
+            summary["warnings"] = warnings + ([f"scale {summary['scale']}"] if from_arm else [])
             _export(tmp, capture, segments, result, summary, rerun=rerun, spawn=spawn, views=views)
     result.summary = summary
     return result

@@ -68,6 +68,19 @@ def test_report_says_how_an_arbitrary_scale_was_fixed(tmp_path):
              "residuals": {"linear": {"scale": "mean_depth"}}}
     assert scale_line(depth).endswith("arbitrary (no --camera-height)")
     assert scale_line({"metric": True, "scale": "metric", "config": cfg}).endswith("metric")
+    # the bundle adjustment took the scale from the spin's arm (graph._check_arm): the summary's text, and why
+    from types import SimpleNamespace
+
+    from panosfm_graph.config import Config
+    from panosfm_graph.pipeline import _arbitrary_scale_text
+
+    res = {"scale_from_arm": 0.55, "spin_arm_m_from_floor": 0.64, "spin_arm_m": 0.35}
+    text = _arbitrary_scale_text(SimpleNamespace(residuals=res), Config())  # only its residuals are read
+    assert "arm came out 0.64 m, outside 0.15-0.55 m" in text and "the arm taken as 0.35 m" in text
+    assert _arbitrary_scale_text(SimpleNamespace(residuals={"spin_arm_m": 0.35}), Config()) == "arbitrary"
+    from_arm = {"metric": False, "scale": text, "config": cfg, "residuals": {"linear": {"scale": "metric"},
+                                                                         "bundle_adjust": res}}
+    assert scale_line(from_arm).endswith(text)  # not "no floor line verified"
 
 
 def test_section_settings_parse_one_sections_fields():

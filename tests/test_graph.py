@@ -358,10 +358,9 @@ def _centre_error(p, sol):
     return err(p, sol)
 
 
-def test_floor_is_moved_below_the_deepest_horizontal_line():
-    """The floor relations are all on furniture tops (0.3-1.0 m): the metric model comes out too large. With
-    ``floor_below_lines_min_obs`` the floor goes down to the deepest well-observed horizontal line (here a
-    line on the true floor), and the camera height then gives the true scale."""
+def _floor_on_furniture():
+    """Returns (problem, relations, metric linear solve, tracks' heights above the floor (m)): a 48-frame living
+    spin whose floor relations are all furniture tops (0.3-1.0 m), the true ones removed."""
     from panosfm_graph.config import LinearConfig
     from panosfm_graph.data import FLOOR, Relations
     from panosfm_graph.linear import solve_linear
@@ -370,9 +369,8 @@ def test_floor_is_moved_below_the_deepest_horizontal_line():
     r = p.relations
     floor_z = p.scene.to_world(np.zeros(3))[2]
     room_z = (p.gt_track_lines[:, 2] + p.gt_track_lines[:, 5]) / 2 - floor_z
-    horizontal = p.tracks.axis != 2
-    tops = np.flatnonzero(horizontal & (room_z > 0.3) & (room_z < 1.0))
-    assert len(tops) >= 3 and np.any(horizontal & (np.abs(room_z) < 0.02))  # a floor line is in view
+    tops = np.flatnonzero((p.tracks.axis != 2) & (room_z > 0.3) & (room_z < 1.0))
+    assert len(tops) >= 3
     keep = r.kind != FLOOR  # the true floor relations go; furniture tops take their place
     rel = Relations(np.concatenate([r.kind[keep], np.full(len(tops), FLOOR, np.int8)]),
                     np.concatenate([r.track_a[keep], tops.astype(np.int32)]),
@@ -382,6 +380,15 @@ def test_floor_is_moved_below_the_deepest_horizontal_line():
     H = float(p.gt_centers[:, 2].mean() - floor_z)
     lin = solve_linear(p.preprocessed, p.tracks, rel, p.camera,
                        LinearConfig(camera_height_m=H, floor_verify_ratio=0.0, tracks_first=False))
+    return p, rel, lin, room_z
+
+
+def test_floor_is_moved_below_the_deepest_horizontal_line():
+    """The floor relations are all on furniture tops (0.3-1.0 m): the metric model comes out too large. With
+    ``floor_below_lines_min_obs`` the floor goes down to the deepest well-observed horizontal line (here a
+    line on the true floor), and the camera height then gives the true scale."""
+    p, rel, lin, room_z = _floor_on_furniture()
+    assert np.any((p.tracks.axis != 2) & (np.abs(room_z) < 0.02))  # a floor line is in view
     scale = {}
     for n in (0, 3):
         cfg = dataclasses.replace(FAST, floor_below_lines_min_obs=n, metric_arm_range_m=(0.0, 1e9))  # the floor alone
@@ -401,25 +408,9 @@ def test_metric_scale_checked_against_the_spin_arm():
     comes out 2.2 times too large, its spin's arm 0.84 m. The arm check (``metric_arm_range_m``) scales it so
     that the arm is 0.35 m (true: 0.38 m) and reports the scale arbitrary; where the floor is right the arm is
     measured (within 3 %) and nothing changes."""
-    from panosfm_graph.config import LinearConfig
-    from panosfm_graph.data import FLOOR, Relations
     from panosfm_graph.graph import spin_arm_length
-    from panosfm_graph.linear import solve_linear
 
-    p = make_problem("living", 48, (480, 270), seed=0, pixel_noise_px=0.3)
-    r = p.relations
-    floor_z = p.scene.to_world(np.zeros(3))[2]
-    room_z = (p.gt_track_lines[:, 2] + p.gt_track_lines[:, 5]) / 2 - floor_z
-    tops = np.flatnonzero((p.tracks.axis != 2) & (room_z > 0.3) & (room_z < 1.0))
-    keep = r.kind != FLOOR
-    rel = Relations(np.concatenate([r.kind[keep], np.full(len(tops), FLOOR, np.int8)]),
-                    np.concatenate([r.track_a[keep], tops.astype(np.int32)]),
-                    np.concatenate([r.track_b[keep], np.full(len(tops), -1, np.int32)]),
-                    np.concatenate([r.normal_axis[keep], np.full(len(tops), 2, np.int8)]),
-                    np.concatenate([r.support[keep], np.ones(len(tops), np.int32)]))
-    H = float(p.gt_centers[:, 2].mean() - floor_z)
-    lin = solve_linear(p.preprocessed, p.tracks, rel, p.camera,
-                       LinearConfig(camera_height_m=H, floor_verify_ratio=0.0, tracks_first=False))
+    p, rel, lin, _ = _floor_on_furniture()
     true_arm = spin_arm_length(p.gt_centers, p.preprocessed.R_wc, p.preprocessed.manhattan.directions, 90.0)
     out = {}
     for name, lowered, arm_range in (("unchecked", 0, (0.0, 1e9)), ("checked", 0, GraphConfig().metric_arm_range_m),
