@@ -181,8 +181,9 @@ def register_frames(n_frames: int, obs_frame: np.ndarray, obs_track: np.ndarray,
                     spin_height: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((F,) bool frames whose translation the linear solve can determine, (F,) int8 reasons) (paper §3.3).
 
-    ``reasons`` index :data:`UNREGISTERED_REASONS` (0 for a registered frame):
-    the first criterion a frame fails at the fixed point, so that users see why.
+    ``reasons`` index :data:`UNREGISTERED_REASONS` (0 for a registered frame): the first
+    criterion a frame fails when it drops out, so that users see why (at the fixed point a
+    dropped frame's lines have lost their other frames, and it is unlinked along every axis).
 
     ``obs_*`` describe the tracked observations (frame, track, unit interpretation-plane normal
     ``N_axis x D``); ``rel_*`` the usable pair coplanarities (tracks, normal axis);
@@ -197,6 +198,7 @@ def register_frames(n_frames: int, obs_frame: np.ndarray, obs_track: np.ndarray,
     kept = np.zeros(F, bool)
     kept[obs_frame] = True
     has_obs = kept.copy()
+    dropped_why = np.zeros(F, np.int8)  # the reason a frame left ``kept`` for, when it did (0: never left)
     linked = np.zeros((F, 3), bool)
     weak = np.zeros((F, 3), bool)
     turned = np.zeros(F) if turned_deg is None else np.asarray(turned_deg, dtype=np.float64)
@@ -270,10 +272,15 @@ def register_frames(n_frames: int, obs_frame: np.ndarray, obs_track: np.ndarray,
         main = linked.all(axis=1)
         in_main = main[link_a] & main[link_b]
         new = determined.all(axis=1) | bridged_frames(link_a[in_main], link_b[in_main], F)
+        # a frame dropped now is reported by the criterion it fails now, not by what the cascade leaves it
+        # (its lines lose their other frames once it is gone, so at the fixed point it is unlinked along every axis)
+        left = kept & ~new & (dropped_why == 0)
+        dropped_why[left] = _reasons(has_obs, ~linked, weak, new)[left]
         if np.array_equal(new, kept):
             break
         kept = new
-    return kept, _reasons(has_obs, ~linked, weak, kept)
+    codes = _reasons(has_obs, ~linked, weak, kept)
+    return kept, np.where(~kept & (dropped_why > 0), dropped_why, codes).astype(np.int8)
 
 
 UNREGISTERED_REASONS = (
