@@ -102,9 +102,7 @@ def reprojection_terms(endpoints: np.ndarray, direction: np.ndarray, lam: np.nda
         fy = fx * fy0 / fx0
     n, m1, m2, s, d1, d2 = _endpoint_distances(endpoints, direction, lam, C, R, fx, fy, cx, cy)
     N = len(n)
-    r = np.empty((N, 2))
-    r[:, 0] = 0.5 * (d1 + d2)
-    r[:, 1] = _S3 * (d1 - d2)
+    r = segment_residuals(d1, d2)
     if not jacobians:
         return r
     # d d_k / d n = (m_k - d_k q) / s with q = (n1 / fx², n2 / fy², 0) / s
