@@ -25,7 +25,7 @@ import sys
 import typing
 from pathlib import Path
 
-from .config import Config, with_overrides
+from .config import SPIN_STYLES, Config, with_overrides, with_spin_style
 from .errors import InputError
 
 EXIT_BAD_INPUT = 2
@@ -49,6 +49,9 @@ def _add_config_flags(p: argparse.ArgumentParser) -> None:
     g.add_argument("--normal-model", default=None, metavar="ONNX", help="run your own ONNX normal model")
     g.add_argument("--camera-height", type=float, default=None, metavar="M",
                    help="camera height above the floor in metres: makes the scale metric")
+    g.add_argument("--spin", choices=list(SPIN_STYLES), default=None,
+                   help="how the capture was spun: hand-held (default; the stand point wanders) or steady (the stand "
+                        "point stays put: frames between two fixed ones are placed on the circle)")
     g.add_argument("--incremental", type=int, default=None, metavar="N",
                    help="solve incrementally, adding N frames per batch")
     g.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
@@ -110,6 +113,8 @@ def section_settings(section: object, items: list[str], prefix: str) -> dict[str
 def config_from_args(args: argparse.Namespace, base: Config | None = None) -> Config:
     """Returns the Config described by the CLI flags (``--set`` last, so it wins)."""
     cfg = base or Config()
+    if getattr(args, "spin", None):
+        cfg = with_spin_style(cfg, args.spin)  # before the other flags: --set still wins
     sections: dict[str, dict] = {}
 
     def put(section: str, field: str, value) -> None:

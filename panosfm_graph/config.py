@@ -306,6 +306,13 @@ class GraphConfig:
     spin_knot_deg: float = 90.0  # ... the stand point is interpolated between knots this turn apart (0: one stand point)
     spin_walk_sigma_m: float = 0.05  # ... std of the stand point's step between neighbouring knots (m)
     spin_height: bool = False  # ... holds the height of a frame whose lines do not (determinacy; see linear.spin_height)
+    # ... holds every coordinate of a frame (determinacy): a steady spin's frames the linear solve placed between two
+    # that their lines fix (linear.motion_bridge_deg) stay registered (SPIN_STYLES 'steady')
+    spin_position: bool = False
+    # ... and with it on, a warning where the centres lie further than this share of the arm off one circle (RMS;
+    # graph.py _check_steady). Measured with the steady style: 0.009-0.019 on the 15 ideal selection circles, 0.009-
+    # 0.026 on 14 kept-back ones (the 15th 0.093, at 1.8 % centre err.), 0.025-18 on the 15 swaying spins (3.3-46 %)
+    steady_max_rms_arm: float = 0.022
     # metric scale: no horizontal line seen in at least this many frames may lie below the floor; the floor is
     # moved down to the deepest (graph.py _floor_below_lines; 0: off). Measured (tools/bench.py --seeds 5, the
     # similarity's scale to the truth within 10 %): selection captures 2 -> 11 of 15, kept-back 1 -> 13,
@@ -359,3 +366,31 @@ def with_overrides(config: Config, **sections: dict[str, Any]) -> Config:
         sub = getattr(config, name)
         changes[name] = dataclasses.replace(sub, **values)
     return dataclasses.replace(config, **changes)
+
+
+# Spin styles (``panosfm run --spin``). Our addition to the paper: the spin model (linear.spin_weight,
+# graph.spin_sigma_m) ties every camera centre to the circle the phone describes about the person's stand point.
+# "hand-held" (the defaults): the stand point wanders, interpolated between knots 90 degrees of turn apart, and a
+# frame is placed only where its own lines fix it. "steady": the stand point stays put (a phone on a rotating arm
+# or turntable, or a spin that keeps the feet and the elbow still), so one stand point serves the whole sweep, and
+# the frames between two frames their lines fix (at most 45 degrees of turn apart) are placed on that circle
+# (linear.motion_bridge_deg: they see a blank wall) and kept (graph.spin_position). Measured (tools/bench.py
+# --seeds 5 [--seed 50 | --sway 0.05], medians living/bedroom/office): ideal circles registered 97/23/85 ->
+# 100/96/100 %, centre err. 1.19/0.65/1.11 -> 0.52/0.55/0.52 %, worst 2.2 -> 0.8 %; kept back 96/44/87 ->
+# 100/97/100 %, 1.01/0.84/1.50 -> 0.60/0.51/0.72 %, worst 3.1 -> 1.8 %; but on spins whose stand point sways
+# 5 cm 1.15/1.03/1.57 -> 43.4/5.9/4.8 %, worst 46 %: only for spins that really are steady (graph.steady_max_rms_arm
+# warns where the centres say otherwise).
+SPIN_STYLES: dict[str, dict[str, dict[str, Any]]] = {
+    "hand-held": {},
+    "steady": {
+        "linear": {"spin_knot_deg": 0.0, "motion_bridge_deg": 45.0},
+        "graph": {"spin_knot_deg": 0.0, "spin_position": True},
+    },
+}
+
+
+def with_spin_style(config: Config, style: str) -> Config:
+    """Returns ``config`` set for a spin style of :data:`SPIN_STYLES` ("hand-held": unchanged, "steady")."""
+    if style not in SPIN_STYLES:
+        raise ValueError(f"unknown spin style {style!r} (one of {', '.join(SPIN_STYLES)})")
+    return with_overrides(config, **SPIN_STYLES[style])

@@ -17,6 +17,21 @@ def test_flags_map_onto_config():
     assert cfg.graph.incremental_batch == 25
 
 
+def test_spin_style_sets_its_fields_and_set_still_wins():
+    from panosfm_graph.config import SPIN_STYLES
+
+    steady = config_from_args(build_parser().parse_args(["run", "cap", "out", "--spin", "steady"]))
+    for section, values in SPIN_STYLES["steady"].items():
+        for field, value in values.items():
+            assert getattr(getattr(steady, section), field) == value
+    assert steady.linear.motion_bridge_deg > 0 and steady.graph.spin_position
+    assert config_from_args(build_parser().parse_args(["run", "cap", "out", "--spin", "hand-held"])) == \
+        config_from_args(build_parser().parse_args(["run", "cap", "out"]))
+    over = config_from_args(build_parser().parse_args(
+        ["run", "cap", "out", "--spin", "steady", "--set", "linear.motion_bridge_deg=20"]))
+    assert over.linear.motion_bridge_deg == 20.0 and over.graph.spin_position
+
+
 def test_set_values_take_the_fields_type():
     """``false`` is False, not the truthy string "false"; numbers, None and tuples parse as their field."""
     sets = ["relations.parallel=false", "relations.floor=No", "graph.verify_relations=TRUE", "graph.max_iterations=7",
