@@ -292,13 +292,13 @@ def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase:
 
 
 def fit_spin(centers: np.ndarray, view_dirs: np.ndarray, manhattan: np.ndarray, j: np.ndarray, alpha: np.ndarray,
-             n_knots: int, walk_weight: float = 1.0, with_rms: bool = False):
-    """Returns (stand-point knots (K, 3) world, arm (a, b)): the least-squares spin circle through the centres.
+             n_knots: int, walk_weight: float = 1.0) -> tuple[np.ndarray, np.ndarray, float]:
+    """Returns (stand-point knots (K, 3) world, arm (a, b), RMS): the least-squares spin circle through the centres.
 
     The rows of :func:`factors.spin_prior.spin_model_rows` (knots ``j``/``alpha``
     from :func:`factors.spin_prior.spin_knots`) with the centres given;
     neighbouring knots are tied with ``walk_weight`` (relative to a centre).
-    ``with_rms``: also the RMS horizontal distance of the centres from the fitted circle.
+    RMS: the horizontal distance of the centres from the fitted circle.
     """
     M = np.asarray(manhattan, dtype=np.float64)
     cm = (np.asarray(centers, dtype=np.float64) @ M.T).ravel()  # 3 i + k, as the rows' centre index
@@ -308,11 +308,9 @@ def fit_spin(centers: np.ndarray, view_dirs: np.ndarray, manhattan: np.ndarray, 
     np.add.at(A, (np.repeat(np.arange(len(kind)), cols.shape[1]), cols.ravel()), (vals * w[:, None]).ravel())
     b = np.where(centre >= 0, cm[np.maximum(centre, 0)], 0.0)
     x = np.linalg.lstsq(A, b, rcond=None)[0]
-    knots, arm = x[:3 * n_knots].reshape(-1, 3) @ M, x[3 * n_knots:].copy()
-    if not with_rms:
-        return knots, arm
     r = (b - A @ x)[kind == 0]  # two horizontal rows per centre
-    return knots, arm, float(np.sqrt(2.0 * np.mean(r ** 2))) if len(r) else 0.0
+    rms = float(np.sqrt(2.0 * np.mean(r ** 2))) if len(r) else 0.0
+    return x[:3 * n_knots].reshape(-1, 3) @ M, x[3 * n_knots:].copy(), rms
 
 
 def _dims(values: gtsam.Values) -> list[tuple[int, int]]:
@@ -505,7 +503,7 @@ def bundle_adjust(pre: Preprocessed, tracks: Tracks, relations: Relations, initi
         from .linear import turned_degrees
 
         knots = factors.spin_knots(turned_degrees(pre.R_wc)[prob.frames], config.spin_knot_deg)
-        stand, arm = fit_spin(initial.centers[prob.frames], R_wc[prob.frames][:, :, 2], pre.manhattan.directions,
+        stand, arm, _ = fit_spin(initial.centers[prob.frames], R_wc[prob.frames][:, :, 2], pre.manhattan.directions,
                               *knots, walk_weight=config.spin_sigma_m / config.spin_walk_sigma_m)
         for jj, p in enumerate(stand):
             values.insert(stand_key(jj), p)
@@ -619,7 +617,7 @@ def spin_fit(centers: np.ndarray, R_wc: np.ndarray, manhattan: np.ndarray, knot_
     if float(np.ptp(turned)) < min_turn_deg:
         return None
     j, alpha, n = factors.spin_knots(turned, knot_deg)
-    _, arm, rms = fit_spin(centers[ok], R_wc[ok][:, :, 2], manhattan, j, alpha, n, with_rms=True)
+    _, arm, rms = fit_spin(centers[ok], R_wc[ok][:, :, 2], manhattan, j, alpha, n)
     return float(np.hypot(*arm)), rms
 
 
