@@ -215,9 +215,9 @@ def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config =
     with stage("export", timings):
         with atomic_output_dir(out_dir, keep=CACHE_KEEP) as tmp:
             summary = _summary(capture, segments, result, config, timings, resumed, t_start)
-            from_arm = result.solution is not None and "scale_from_arm" in (result.solution.residuals or {})
-            ba_warnings = list((result.solution.residuals or {}).get("warnings", [])) if result.solution is not None else []
-            summary["warnings"] = warnings + ([f"scale {summary['scale']}"] if from_arm else []) + ba_warnings
+            solved = (result.solution.residuals or {}) if result.solution is not None else {}
+            from_arm = [f"scale {summary['scale']}"] if "scale_from_arm" in solved else []
+            summary["warnings"] = warnings + from_arm + list(solved.get("warnings", []))
             _export(tmp, capture, segments, result, summary, rerun=rerun, spawn=spawn, views=views)
     result.summary = summary
     return result
