@@ -303,3 +303,8 @@ class Solution:
     camera: Camera  # possibly refined intrinsics (BA phase 3)
     metric: bool  # scale is metric (a camera height was given)
     residuals: dict  # per constraint type / phase, for summary.json
+    # (R,) bool over the relations the solver was given: those this solution rests on (the linear solve:
+    # all but the floor relations linear.floor_verified finds above the floor; the bundle adjustment: those
+    # it used after verification and rejection). A later solve from this one leaves the others out.
+    # Empty: not recorded (a hand-made solution), every relation counts
+    relations_kept: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))

@@ -156,6 +156,8 @@ def _select(pre: Preprocessed, tracks: Tracks, relations: Relations, initial: So
             keep |= relations.kind == kind
     if not floor_held_scale(initial):  # the linear solve found them no floor (or had none): neither is the BA's
         keep &= relations.kind != FLOOR
+    if len(initial.relations_kept) == relations.n:  # nor the floor relations it found above the floor
+        keep &= initial.relations_kept
     ta, tb = relations.track_a, relations.track_b
     ok_a = (ta >= 0) & line_ok[np.clip(ta, 0, None)]
     ok_b = np.where(relations.kind == FLOOR, True, (tb >= 0) & line_ok[np.clip(tb, 0, None)])
@@ -169,7 +171,7 @@ def floor_held_scale(initial: Solution) -> bool:
     """Returns whether ``initial``'s scale rests on floor relations (metric or camera-to-floor = 1).
 
     Where the linear solve dropped every floor relation (none verified, or fewer floor lines than
-    ``min_floor_lines``: ``linear.verify_floor``) its scale is arbitrary, and the bundle adjustment
+    ``min_floor_lines``: ``linear.floor_verified``) its scale is arbitrary, and the bundle adjustment
     leaves the floor out too rather than bring back what was found to be no floor. A solution without
     a recorded scale mode (a hand-made initial solution) keeps its floor relations.
     """
@@ -575,6 +577,9 @@ def bundle_adjust(pre: Preprocessed, tracks: Tracks, relations: Relations, initi
     residuals["rejected_relations"] = sorted(rejected)
     residuals["focal_px"] = float(camera.K[0, 0])
     sol = _solution(pre, tracks, initial, prob, values, R_wc, camera, residuals)
+    used = np.zeros(relations.n, bool)
+    used[prob.rel_idx[rel_mask]] = True
+    sol = dataclasses.replace(sol, relations_kept=used)
     residuals["reprojection_rms_px"] = _reprojection_rms(pre, prob, sol.lines.taylor, sol.R_wc, sol.centers, camera.K)
     sol = _mark_undetermined(pre, relations, prob, rel_mask, sol, config, values)
     residuals = sol.residuals  # _mark_undetermined returns a copy

@@ -334,9 +334,9 @@ def weak_axes(information: np.ndarray, min_eig: float, manhattan: np.ndarray = n
     return weak
 
 
-def verify_floor(pre: Preprocessed, tracks: Tracks, relations: Relations, camera: Camera,
-                 config: LinearConfig) -> tuple[Relations, int]:
-    """Returns (relations without the floor relations that are not on the floor, how many were dropped).
+def floor_verified(pre: Preprocessed, tracks: Tracks, relations: Relations, camera: Camera,
+                   config: LinearConfig) -> np.ndarray:
+    """Returns (R,) bool: every relation but the floor relations that are not on the floor.
 
     A deviation from the paper: surface normals cannot tell the floor from the tops of tables,
     beds and sofa seats (all horizontal), and one furniture top taken for the floor makes the
@@ -359,9 +359,8 @@ def verify_floor(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     t = relations.track_a[cand].astype(int)
     known = first.lines.valid[t] & np.any(reg)  # the others cannot be checked: they are dropped too
     if not np.any(known):
-        keep = ~is_floor
         log.info("linear: none of the %d floor relations can be verified, dropped", len(cand))
-        return relations.subset(keep), int(len(cand))
+        return ~is_floor
     cam_h = float(np.mean(first.centers[reg] @ up))
     depth = cam_h - first.lines.taylor[t[known]] @ up  # how far below the cameras each candidate line lies
     # the reference: the deepest horizontal lines of the model (floor candidates or not: a floor-wall
@@ -386,7 +385,7 @@ def verify_floor(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     keep = np.ones(relations.n, bool)
     keep[drop] = False
     log.info("linear: %d of %d floor relations are above the floor (furniture tops), dropped", len(drop), len(cand))
-    return relations.subset(keep), int(len(drop))
+    return keep
 
 
 def turned_degrees(R_wc: np.ndarray) -> np.ndarray:
@@ -435,7 +434,8 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     scale, registration). Lines: direction = the track's Manhattan direction, position = the median
     of its observations' points (orthogonal to the direction), extent = the closest points on the
     line to its segments' end-point rays. ``R_wc`` is ``pre.R_wc`` passed through.
-    With ``floor_verify_ratio`` > 0 the floor relations are verified first (:func:`verify_floor`).
+    With ``floor_verify_ratio`` > 0 the floor relations are verified first (:func:`floor_verified`);
+    ``relations_kept`` of the result says which relations it used.
     """
     if config.tracks_first and config.coplanarity_weight > 0:
         paper = dataclasses.replace(config, tracks_first=False)
@@ -449,10 +449,10 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
                  int(alone.registered.sum()), int(with_rel.registered.sum()))
         return sol
     if config.floor_verify_ratio > 0 and np.any(relations.kind == FLOOR):
-        relations, n_dropped = verify_floor(pre, tracks, relations, camera, config)
-        sol = solve_linear(pre, tracks, relations, camera, dataclasses.replace(config, floor_verify_ratio=0.0))
-        sol.residuals["floor_relations_rejected"] = n_dropped
-        return sol
+        keep = floor_verified(pre, tracks, relations, camera, config)
+        sol = solve_linear(pre, tracks, relations.subset(keep), camera, dataclasses.replace(config, floor_verify_ratio=0.0))
+        sol.residuals["floor_relations_rejected"] = int(np.sum(~keep))
+        return dataclasses.replace(sol, relations_kept=keep)
     t_start = time.perf_counter()
     seg = pre.segments
     F = len(pre.R_wc)
@@ -751,7 +751,8 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     log.info("linear: registered %d / %d frames, %d lines, colinearity rms %.3g (%s scale) in %.2f s",
              int(registered.sum()), F, int(valid.sum()), res["colinearity_rms"] or 0.0, scale_mode, res["seconds"])
     return Solution(R_wc=np.asarray(pre.R_wc, dtype=np.float64).copy(), centers=centers, registered=registered,
-                    lines=lines, camera=camera, metric=scale_mode == "metric", residuals=res)
+                    lines=lines, camera=camera, metric=scale_mode == "metric", residuals=res,
+                    relations_kept=np.ones(relations.n, bool))
 
 
 def _motion_rows(frames: np.ndarray, yaw: np.ndarray, config: LinearConfig) -> tuple[np.ndarray, np.ndarray]:

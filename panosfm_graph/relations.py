@@ -32,7 +32,7 @@ crossing the quad between a wall line and a cabinet edge has its mid-point
 beyond them (oracle normals, 200-frame captures: orthogonal precision
 0.90/0.83/0.85 -> 0.92/0.90/0.86, parallel 0.88/0.84/0.73 -> 0.94/0.84/0.74,
 recall unchanged within 0.02). Floor relations on
-furniture tops are dropped later, by the linear solve (``linear.verify_floor``).
+furniture tops are dropped later, by the linear solve (``linear.floor_verified``).
 
 Known limits (measured on real pipeline output, ``tools/bench_relations.py``):
 normals cannot tell two parallel planes apart (a bookshelf's front and the

@@ -464,6 +464,45 @@ def test_floor_relations_the_linear_solve_dropped_stay_out():
     assert counts["true"] > 0 and counts["dropped"] == 0, counts
 
 
+def test_furniture_tops_the_linear_solve_dropped_stay_out_of_the_bundle_adjustment():
+    """Floor relations on furniture tops that the linear solve's floor verification drops (``relations_kept``)
+    get no floor factor in the bundle adjustment, and the metric scale stays right; the BA's own result
+    records the relations it used. Without the linear solve's record (a hand-made initial) they come back."""
+    from panosfm_graph.config import LinearConfig
+    from panosfm_graph.data import FLOOR, Relations
+    from panosfm_graph.linear import solve_linear
+
+    p = make_problem("living", 48, (480, 270), seed=0, pixel_noise_px=0.3)
+    r = p.relations
+    room_z = (p.gt_track_lines[:, 2] + p.gt_track_lines[:, 5]) / 2 - p.scene.to_world(np.zeros(3))[2]
+    on_floor = np.zeros(p.tracks.n, bool)
+    on_floor[r.track_a[r.kind == FLOOR]] = True
+    tops = np.flatnonzero((p.tracks.axis != 2) & (room_z > 0.3) & (room_z < 1.0) & ~on_floor)
+    assert len(tops) >= 3
+    n = len(tops)
+    bad = Relations(np.concatenate([r.kind, np.full(n, FLOOR, np.int8)]),
+                    np.concatenate([r.track_a, tops.astype(np.int32)]),
+                    np.concatenate([r.track_b, np.full(n, -1, np.int32)]),
+                    np.concatenate([r.normal_axis, np.full(n, 2, np.int8)]),
+                    np.concatenate([r.support, np.ones(n, np.int32)]))
+    H = float(p.gt_centers[:, 2].mean() - p.scene.to_world(np.zeros(3))[2])
+    lin = solve_linear(p.preprocessed, p.tracks, bad, p.camera, LinearConfig(camera_height_m=H, tracks_first=False))
+    assert lin.residuals["floor_relations_rejected"] == n
+    np.testing.assert_array_equal(lin.relations_kept, np.arange(bad.n) < r.n)
+    true_floor = int(np.sum(r.kind == FLOOR))
+    scales, floors = {}, {}
+    for name, start in (("recorded", lin), ("not recorded", dataclasses.replace(lin, relations_kept=np.zeros(0, bool)))):
+        sol = bundle_adjust(p.preprocessed, p.tracks, bad, start, dataclasses.replace(FAST, floor_below_lines_min_obs=0))
+        floors[name] = sol.residuals["factors"]["floor"]
+        reg = sol.registered
+        scales[name] = umeyama(sol.centers[reg], p.gt_centers[reg])[0]
+        assert len(sol.relations_kept) == bad.n
+        if name == "recorded":  # the BA used none the linear solve dropped
+            assert not np.any(sol.relations_kept & ~lin.relations_kept)
+    assert 0 < floors["recorded"] <= true_floor < floors["not recorded"], floors
+    assert abs(scales["recorded"] - 1) < 0.02 < abs(scales["not recorded"] - 1), scales
+
+
 def test_steady_spin_places_the_frames_a_blank_wall_leaves_free():
     """``--spin steady`` (config.SPIN_STYLES): frames that see only vertical lines (their heights free) between two
     stretches their lines fix are placed on the one circle of a steady spin and kept by the bundle adjustment,

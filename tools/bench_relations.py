@@ -15,15 +15,24 @@ correct when both GT edges lie on one face plane ``x_k = c`` of the scene
 2 cm and window glass 1 cm off their wall count as on it; TV screens, door
 jambs and window trims 3.5-5 cm do not); FLOOR is correct when the GT edge
 lies at the floor height; ``floor_verified`` scores the floor relations the
-linear solve keeps (``linear.verify_floor`` drops those above the lowest
+linear solve keeps (``linear.floor_verified`` drops those above the lowest
 horizontal plane of a first solve: the tops of furniture). Relations of tracks without a GT edge are left
 out of the precision (``unk`` counts them). Recall is against the pairs of
 mapped tracks seen in a common frame whose GT edges lie on a common face
 rectangle (orthogonal / parallel), share an endpoint (junction), or lie on
 the floor (floor).
 
+``kept`` scores the relations the solution rests on (``Solution.relations_kept``):
+the detected relations (all four types) are solved by the linear solve (true
+camera height, default ``LinearConfig``) and :func:`bundle_adjust`
+(``--graph-set``), which drops the floor relations above the floor, and
+(graph.verify_relations, reject_sigma) the coplanarities the tracks' parallax
+or the final residuals contradict; relations of tracks the solves do not place
+are not kept either.
+
     python tools/bench_relations.py --scenes living bedroom office --frames 200 --size 640x360
     python tools/bench_relations.py --set junction_dist_frac=0.05   # RelationsConfig overrides
+    python tools/bench_relations.py --graph-set verify_relations=true   # GraphConfig overrides for 'kept'
 """
 from __future__ import annotations
 
@@ -39,10 +48,11 @@ from pathlib import Path
 import numpy as np
 
 from panosfm_graph.cli import section_settings
-from panosfm_graph.config import Config, LinearConfig, NormalsConfig, RelationsConfig
+from panosfm_graph.config import Config, GraphConfig, LinearConfig, NormalsConfig, RelationsConfig
 from panosfm_graph.data import FLOOR, JUNCTION, ORTHOGONAL, PARALLEL, RELATION_NAMES
 from panosfm_graph.errors import InputError
-from panosfm_graph.linear import verify_floor
+from panosfm_graph.graph import bundle_adjust
+from panosfm_graph.linear import floor_verified, solve_linear
 from panosfm_graph.normals import estimate_normals, normal_accuracy
 from panosfm_graph.pipeline import run_pipeline
 from panosfm_graph.relations import detect_relations, judge_relations, track_gt_edges
@@ -157,11 +167,18 @@ def score(rel, g: GroundTruthView, truth: dict[int, set], tol: float, fixture: f
 
 
 def bench_scene(cap: Path, work: Path, sources, width: int, tol: float, cfg: RelationsConfig,
-                normals_cache: dict) -> list[dict]:
-    """Returns one result row per normal source for the capture ``cap``."""
+                normals_cache: dict, graph_cfg: GraphConfig | None = None) -> list[dict]:
+    """Returns one result row per normal source for the capture ``cap``.
+
+    With ``graph_cfg`` the relations are also solved (the linear solve with the true camera height,
+    then :func:`bundle_adjust` with ``graph_cfg``) and the ones the solution rests on
+    (``Solution.relations_kept``) scored as ``kept``.
+    """
     res = run_pipeline(cap, work / cap.name, Config(), resume=True, rerun=False, views=False, stop_after="track")
     capture, pre, tracks = res.capture, res.preprocessed, res.tracks
     g = ground_truth_view(capture, pre, tracks)
+    gt = capture.ground_truth
+    height = float(gt.centers[:, 2].mean() - gt.scene.get("room", {}).get("min", [0, 0, 0])[2])  # as tools/bench.py
     truth = gt_relation_sets(pre, tracks, g, tol)
     rows = []
     for source in sources:
@@ -175,10 +192,16 @@ def bench_scene(cap: Path, work: Path, sources, width: int, tol: float, cfg: Rel
         rel = detect_relations(pre, tracks, nm, capture.camera, cfg)
         t_rel = time.perf_counter() - t0
         sc, _ = score(rel, g, truth, tol)
-        # the floor relations the solver keeps: linear.verify_floor drops those above the lowest plane
-        kept, _ = verify_floor(pre, tracks, rel, capture.camera, LinearConfig())
+        # the floor relations the solver keeps: linear.floor_verified drops those above the lowest plane
+        kept = rel.subset(floor_verified(pre, tracks, rel, capture.camera, LinearConfig()))
         vf, _ = score(kept, g, truth, tol)
         sc["floor_verified"] = vf["floor"]
+        if graph_cfg is not None:
+            t0 = time.perf_counter()
+            lin = solve_linear(pre, tracks, rel, capture.camera, LinearConfig(camera_height_m=height))
+            ba = bundle_adjust(pre, tracks, rel, lin, graph_cfg) if lin.registered.any() else lin
+            kept, _ = score(rel.subset(ba.relations_kept), g, truth, tol)
+            sc["kept"] = {**kept, "registered": int(ba.registered.sum()), "seconds": round(time.perf_counter() - t0, 2)}
         acc = normal_accuracy(nm, capture, pre.R_wc)
         rows.append({"scene": cap.name, "frames": capture.n_frames, "tracks": tracks.n,
                      "tracks_mapped": round(float(np.mean(g.track_edge >= 0)), 3), "source": nm.source,
@@ -199,6 +222,8 @@ def main() -> None:
     ap.add_argument("--tol", type=float, default=0.02, help="coplanarity tolerance (m)")
     ap.add_argument("--root", default="/tmp/bench_relations", help="captures and pipeline caches go here")
     ap.add_argument("--set", nargs="*", help="RelationsConfig overrides key=value")
+    ap.add_argument("--graph-set", nargs="*", help="GraphConfig overrides key=value for the solve of the 'kept' scores")
+    ap.add_argument("--no-solve", action="store_true", help="detection scores only (no linear solve and BA)")
     ap.add_argument("--json", help="also write the results here")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
@@ -213,17 +238,27 @@ def main() -> None:
     except InputError as exc:
         ap.error(str(exc))
     cfg = dataclasses.replace(RelationsConfig(), **{"parallel": True, **sets})
+    try:
+        graph_cfg = None if args.no_solve else dataclasses.replace(
+            GraphConfig(), **section_settings(GraphConfig(), args.graph_set, "graph"))
+    except InputError as exc:
+        ap.error(str(exc))
     root = Path(args.root)
     root.mkdir(parents=True, exist_ok=True)
     results, cache = [], {}
     for scene in args.scenes:
         cap = ensure_capture(root, scene, args.frames, args.size, args.seed)
-        for r in bench_scene(cap, root / "runs", sources, args.width, args.tol, cfg, cache):
+        for r in bench_scene(cap, root / "runs", sources, args.width, args.tol, cfg, cache, graph_cfg):
             results.append(r)
             cells = [f"{n[:5] if n != 'floor_verified' else 'fl.ver'} n={r[n]['n']} P={r[n]['precision']} R={r[n]['recall']}/{r[n]['n_gt']}"
                      for n in (*RELATION_NAMES, "floor_verified")]
             print(f"{scene:8s} {r['source']:15s} tracks={r['tracks']} mapped={r['tracks_mapped']} | "
                   + " | ".join(cells) + f" | {r['relations_s']}s")
+            if "kept" in r:
+                k = r["kept"]
+                print(f"{'':8s} {'  kept by solves':15s} registered={k['registered']}/{r['frames']} | "
+                      + " | ".join(f"{n[:5]} n={k[n]['n']} P={k[n]['precision']} R={k[n]['recall']}" for n in RELATION_NAMES)
+                      + f" | {k['seconds']}s")
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(results, fh, indent=1)
