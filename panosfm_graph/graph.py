@@ -638,11 +638,15 @@ def _check_steady(sol: Solution, manhattan: np.ndarray, config: GraphConfig) -> 
     rel = None if fit is None or fit[0] <= 0 else fit[1] / fit[0]
     sol.residuals["spin_circle_rms_arm"] = rel
     if config.spin_position and rel is not None and rel > config.steady_max_rms_arm:
-        msg = (f"the camera centres lie {100 * rel:.1f} % of the arm off one circle (a steady spin: under "
-               f"{100 * config.steady_max_rms_arm:.1f} %): the spin looks hand-held; compare with a run without "
-               f"--spin steady")
-        log.warning("BA: %s", msg)
-        sol.residuals.setdefault("warnings", []).append(msg)
+        _warn(sol.residuals, f"the camera centres lie {100 * rel:.1f} % of the arm off one circle (a steady spin: "
+                             f"under {100 * config.steady_max_rms_arm:.1f} %): the spin looks hand-held; compare "
+                             f"with a run without --spin steady")
+
+
+def _warn(residuals: dict, msg: str) -> None:
+    """Logs ``msg`` and adds it to ``residuals["warnings"]`` (the run's summary.json ``warnings``)."""
+    log.warning("BA: %s", msg)
+    residuals.setdefault("warnings", []).append(msg)
 
 
 def _check_arm(sol: Solution, manhattan: np.ndarray, config: GraphConfig) -> Solution:
@@ -664,9 +668,9 @@ def _check_arm(sol: Solution, manhattan: np.ndarray, config: GraphConfig) -> Sol
     if arm is None or arm <= 0 or not sol.metric or lo <= arm <= hi:
         return sol
     s = config.metric_arm_fallback_m / arm
-    log.warning("BA: the metric scale puts the spin's arm at %.2f m (outside %.2f-%.2f m): the floor lines were "
-                "likely not the floor; scaled by %.3g so that the arm is %.2f m, scale reported arbitrary",
-                arm, lo, hi, s, config.metric_arm_fallback_m)
+    _warn(res, f"the metric scale puts the spin's arm at {arm:.2f} m (outside {lo:g}-{hi:g} m): the floor lines "
+               f"were likely not the floor; scaled by {s:.3g} so that the arm is {config.metric_arm_fallback_m:g} m, "
+               f"scale reported arbitrary")
     res["spin_arm_m_from_floor"] = arm
     res["scale_from_arm"] = float(s)
     res["spin_arm_m"] = float(config.metric_arm_fallback_m)

@@ -216,8 +216,7 @@ def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config =
         with atomic_output_dir(out_dir, keep=CACHE_KEEP) as tmp:
             summary = _summary(capture, segments, result, config, timings, resumed, t_start)
             solved = (result.solution.residuals or {}) if result.solution is not None else {}
-            from_arm = [f"scale {summary['scale']}"] if "scale_from_arm" in solved else []
-            summary["warnings"] = warnings + from_arm + list(solved.get("warnings", []))
+            summary["warnings"] = warnings + list(solved.get("warnings", []))
             _export(tmp, capture, segments, result, summary, rerun=rerun, spawn=spawn, views=views)
     result.summary = summary
     return result

@@ -423,6 +423,10 @@ def test_metric_scale_checked_against_the_spin_arm():
     s, sol = out["checked"]
     assert not sol.metric and abs(sol.residuals["spin_arm_m_from_floor"] - out["unchecked"][1].residuals["spin_arm_m"]) < 1e-6
     assert abs(sol.residuals["spin_arm_m"] - 0.35) < 1e-9 and abs(s - true_arm / 0.35) < 0.05, s
+    # the run says so (summary.json warnings), once, with the arm the floor implied; the unchecked one does not
+    warned = [w for w in sol.residuals.get("warnings", []) if "spin's arm" in w]
+    assert len(warned) == 1 and f"{sol.residuals['spin_arm_m_from_floor']:.2f} m" in warned[0], warned
+    assert not out["unchecked"][1].residuals.get("warnings")
     s, sol = out["floor right"]
     assert sol.metric and "scale_from_arm" not in sol.residuals and abs(s - 1) < 0.05, s
     assert abs(sol.residuals["spin_arm_m"] / true_arm - 1) < 0.03, (sol.residuals["spin_arm_m"], true_arm)
