@@ -29,7 +29,7 @@ import numpy as np
 from . import __version__
 from .cache import StageCache, stable_hash, stage_code_hash
 from .config import Config
-from .data import (RELATION_NAMES, Capture, NormalMaps, Preprocessed, Relations, Segments, Solution,
+from .data import (FLOOR, RELATION_NAMES, Capture, NormalMaps, Preprocessed, Relations, Segments, Solution,
                    Thumbnails, Tracks)
 from .errors import InputError
 from .progress import stage
@@ -70,7 +70,9 @@ class RunResult:
             lines.append(f"  segments    {s['segments']['total']} ({s['segments']['manhattan']} Manhattan), "
                          f"{s.get('tracks', 0)} tracks, {s.get('lines', 0)} 3D lines")
         if "relations" in s:
-            lines.append("  relations   " + ", ".join(f"{k} {v}" for k, v in s["relations"].items()))
+            kept = s.get("relations_kept", {})
+            lines.append("  relations   " + ", ".join(f"{k} {v}" + (f" ({kept[k]} kept)" if k in kept else "")
+                                                  for k, v in s["relations"].items()))
         linear = (s.get("residuals") or {}).get("linear") or {}
         linear_cfg = s.get("config", {}).get("linear", {})
         arm = linear_cfg.get("spin_arm_m")
@@ -350,6 +352,7 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
         "lines": int(sol.lines.valid.sum()) if sol is not None else 0,
         "relations": (result.relations.counts() if result.relations is not None
                       else {k: 0 for k in RELATION_NAMES}),
+        "relations_kept": _relations_kept(result.relations, sol),
         "metric": bool(sol.metric) if sol is not None else False,
         "scale": (_scale_text(config.linear.camera_height_m, n_floor, sol.residuals)
                   if sol is not None and sol.metric else _arbitrary_scale_text(sol, config)),
@@ -368,6 +371,21 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
                                                 for b in result.batches]
     summary["seconds"]["total"] = round(time.perf_counter() - t_start, 3)
     return summary
+
+
+def _relations_kept(relations: Relations | None, sol: Solution | None) -> dict[str, int]:
+    """Returns the count by type of the relations the solution rests on: kept by it (``Solution.relations_kept``:
+    the floor the linear solve verified, the BA's verification and rejection) between lines it placed."""
+    if relations is None or sol is None:
+        return {k: 0 for k in RELATION_NAMES}
+    valid = np.asarray(sol.lines.valid, bool)
+    kept = sol.relations_kept if len(sol.relations_kept) == relations.n else np.ones(relations.n, bool)
+
+    def placed(t):
+        return (t >= 0) & (t < len(valid)) & valid[np.clip(t, 0, max(len(valid) - 1, 0))]
+
+    both = placed(relations.track_a) & ((relations.kind == FLOOR) | placed(relations.track_b))
+    return relations.subset(kept & both).counts()
 
 
 def _scale_text(camera_height_m: float, n_floor: int, residuals: dict) -> str:

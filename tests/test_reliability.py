@@ -78,6 +78,10 @@ def check_result(out: Path, capture: Path) -> dict:
         assert np.all(np.isfinite(im["R_wc"])) and np.all(np.isfinite(im["center"]))
     ends, _, _ = read_lines_ply(out / "lines.ply")
     assert np.all(np.isfinite(ends)) and len(ends) == summary["lines"]
+    # the relations the result rests on are some of those detected, none where nothing is registered
+    kept, found = summary["relations_kept"], summary["relations"]
+    assert kept.keys() == found.keys() and all(0 <= kept[k] <= found[k] for k in found), (kept, found)
+    assert summary["frames"]["registered"] > 0 or not any(kept.values()), kept
     frames = set(os.listdir(capture / "frames"))
     assert set(model["images"]) <= frames
     return summary
