@@ -435,7 +435,7 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     of its observations' points (orthogonal to the direction), extent = the closest points on the
     line to its segments' end-point rays. ``R_wc`` is ``pre.R_wc`` passed through.
     With ``floor_verify_ratio`` > 0 the floor relations are verified first (:func:`floor_verified`);
-    ``relations_kept`` of the result says which relations it used.
+    ``relations_kept`` of the result: all relations but the floor relations it found above the floor.
     """
     if config.tracks_first and config.coplanarity_weight > 0:
         paper = dataclasses.replace(config, tracks_first=False)
