@@ -81,6 +81,11 @@ class GroundTruth:
     has_normals: bool = False
     has_depth: bool = False
 
+    @property
+    def camera_height_m(self) -> float:
+        """Returns the true mean camera height above the floor (the room's lowest z in ``scene.json``), in m."""
+        return float(np.mean(self.centers[:, 2]) - self.scene.get("room", {}).get("min", [0, 0, 0])[2])
+
 
 @dataclass(frozen=True)
 class Capture:

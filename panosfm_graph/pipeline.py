@@ -466,8 +466,7 @@ def run_demo(out_dir: str | Path, *, scene: str = "living", n_frames: int = 300,
         from .capture import load_capture
 
         gt = load_capture(cap_dir, config.capture).ground_truth
-        floor_z = float(gt.scene.get("room", {}).get("min", [0, 0, 0])[2]) if gt is not None else 0.0
-        height = float(np.mean(gt.centers[:, 2]) - floor_z) if gt is not None else 1.5
+        height = gt.camera_height_m if gt is not None else 1.5
         config = dataclasses.replace(config, linear=dataclasses.replace(config.linear, camera_height_m=height))
     result = run_pipeline(cap_dir, out_dir / "reconstruction", config, spawn=spawn, resume=True)
     metrics = evaluate_reconstruction(cap_dir, out_dir / "reconstruction")

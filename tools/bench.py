@@ -58,7 +58,7 @@ def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peer
             synthesize(cap, scene=scene, n_frames=frames, size=size, seed=seed + k + 10 * j, sway_m=sway_m)
             print(f"[{scene}] synthesised in {time.perf_counter() - t0:.1f} s", flush=True)
         gt = load_capture(cap).ground_truth
-        height = float(gt.centers[:, 2].mean() - gt.scene.get("room", {}).get("min", [0, 0, 0])[2])
+        height = gt.camera_height_m
         entry = {}
         rec = out / "runs" / name / "panosfm"
         code, secs, err = _run([sys.executable, "-m", "panosfm_graph", "run", str(cap), str(rec),

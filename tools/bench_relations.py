@@ -177,8 +177,7 @@ def bench_scene(cap: Path, work: Path, sources, width: int, tol: float, cfg: Rel
     res = run_pipeline(cap, work / cap.name, Config(), resume=True, rerun=False, views=False, stop_after="track")
     capture, pre, tracks = res.capture, res.preprocessed, res.tracks
     g = ground_truth_view(capture, pre, tracks)
-    gt = capture.ground_truth
-    height = float(gt.centers[:, 2].mean() - gt.scene.get("room", {}).get("min", [0, 0, 0])[2])  # as tools/bench.py
+    height = capture.ground_truth.camera_height_m
     truth = gt_relation_sets(pre, tracks, g, tol)
     rows = []
     for source in sources:
