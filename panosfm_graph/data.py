@@ -268,6 +268,16 @@ class Relations:
         """Returns the relations selected by ``index`` (a boolean mask or integer indices)."""
         return Relations(*(np.asarray(getattr(self, f.name))[index] for f in fields(Relations)))
 
+    def between(self, line_ok: np.ndarray) -> np.ndarray:
+        """Returns (R,) bool: the relations whose lines (``track_a``, and ``track_b`` of a pair) all have ``line_ok`` (T,)."""
+        ok = np.asarray(line_ok, bool)
+
+        def has(t: np.ndarray) -> np.ndarray:
+            inside = (t >= 0) & (t < len(ok))
+            return inside & ok[np.where(inside, t, 0)] if len(ok) else np.zeros(len(t), bool)
+
+        return has(self.track_a) & ((self.kind == FLOOR) | has(self.track_b))
+
 
 @dataclass(frozen=True)
 class LineModel:

@@ -158,10 +158,7 @@ def _select(pre: Preprocessed, tracks: Tracks, relations: Relations, initial: So
         keep &= relations.kind != FLOOR
     if len(initial.relations_kept) == relations.n:  # nor the floor relations it found above the floor
         keep &= initial.relations_kept
-    ta, tb = relations.track_a, relations.track_b
-    ok_a = (ta >= 0) & line_ok[np.clip(ta, 0, None)]
-    ok_b = np.where(relations.kind == FLOOR, True, (tb >= 0) & line_ok[np.clip(tb, 0, None)])
-    rel_idx = np.flatnonzero(keep & ok_a & ok_b) if relations.n else np.zeros(0, int)
+    rel_idx = np.flatnonzero(keep & relations.between(line_ok)) if relations.n else np.zeros(0, int)
     return _Problem(frames=np.unique(seg.frame[s]), rot_frames=np.flatnonzero(initial.registered),
                     lines=np.flatnonzero(line_ok), obs_seg=s, obs_track=tr[s], obs_frame=seg.frame[s].astype(np.int64),
                     directions=directions, rel_idx=rel_idx)

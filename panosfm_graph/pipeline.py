@@ -29,7 +29,7 @@ import numpy as np
 from . import __version__
 from .cache import StageCache, stable_hash, stage_code_hash
 from .config import Config
-from .data import (FLOOR, RELATION_NAMES, Capture, NormalMaps, Preprocessed, Relations, Segments, Solution,
+from .data import (RELATION_NAMES, Capture, NormalMaps, Preprocessed, Relations, Segments, Solution,
                    Thumbnails, Tracks)
 from .errors import InputError
 from .progress import stage
@@ -378,14 +378,8 @@ def _relations_kept(relations: Relations | None, sol: Solution | None) -> dict[s
     the floor the linear solve verified, the BA's verification and rejection) between lines it placed."""
     if relations is None or sol is None:
         return {k: 0 for k in RELATION_NAMES}
-    valid = np.asarray(sol.lines.valid, bool)
     kept = sol.relations_kept if len(sol.relations_kept) == relations.n else np.ones(relations.n, bool)
-
-    def placed(t):
-        return (t >= 0) & (t < len(valid)) & valid[np.clip(t, 0, max(len(valid) - 1, 0))]
-
-    both = placed(relations.track_a) & ((relations.kind == FLOOR) | placed(relations.track_b))
-    return relations.subset(kept & both).counts()
+    return relations.subset(kept & relations.between(sol.lines.valid)).counts()
 
 
 def _scale_text(camera_height_m: float, n_floor: int, residuals: dict) -> str:

@@ -298,3 +298,13 @@ def test_a_line_running_through_the_quad_rejects_it_even_with_its_midpoint_outsi
     sampled = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(parallel=True, quad_clear_samples=9)), PARALLEL)
     midpoint = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(parallel=True, quad_clear_samples=1)), PARALLEL)
     assert (0, 1, 1) in midpoint and (0, 1, 1) not in sampled
+
+
+def test_relations_between_placed_lines():
+    """``Relations.between``: a pair needs both lines, a floor relation its one line; tracks outside the range never pass."""
+    rel = Relations(np.array([ORTHOGONAL, JUNCTION, FLOOR, FLOOR, PARALLEL], np.int8),
+                    np.array([0, 1, 2, 1, 0], np.int32), np.array([1, 2, -1, -1, 7], np.int32),
+                    np.zeros(5, np.int8), np.ones(5, np.int32))
+    np.testing.assert_array_equal(rel.between(np.array([True, True, False])), [True, False, False, True, False])
+    np.testing.assert_array_equal(rel.between(np.ones(3, bool)), [True, True, True, True, False])
+    assert not rel.between(np.zeros(0, bool)).any()
