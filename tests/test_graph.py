@@ -358,9 +358,11 @@ def _centre_error(p, sol):
     return err(p, sol)
 
 
-def _floor_on_furniture():
+def _floor_on_furniture(true_floor: bool = False, verify: bool = False):
     """Returns (problem, relations, metric linear solve, tracks' heights above the floor (m)): a 48-frame living
-    spin whose floor relations are all furniture tops (0.3-1.0 m), the true ones removed."""
+    spin with floor relations on every furniture top (0.3-1.0 m), appended after the problem's own relations
+    (of which the true floor relations are kept only with ``true_floor``); the linear solve verifies the floor
+    (``linear.floor_verified``) only with ``verify``."""
     from panosfm_graph.config import LinearConfig
     from panosfm_graph.data import FLOOR, Relations
     from panosfm_graph.linear import solve_linear
@@ -371,15 +373,16 @@ def _floor_on_furniture():
     room_z = (p.gt_track_lines[:, 2] + p.gt_track_lines[:, 5]) / 2 - floor_z
     tops = np.flatnonzero((p.tracks.axis != 2) & (room_z > 0.3) & (room_z < 1.0))
     assert len(tops) >= 3
-    keep = r.kind != FLOOR  # the true floor relations go; furniture tops take their place
+    keep = np.ones(r.n, bool) if true_floor else r.kind != FLOOR  # furniture tops added (in place of the floor)
     rel = Relations(np.concatenate([r.kind[keep], np.full(len(tops), FLOOR, np.int8)]),
                     np.concatenate([r.track_a[keep], tops.astype(np.int32)]),
                     np.concatenate([r.track_b[keep], np.full(len(tops), -1, np.int32)]),
                     np.concatenate([r.normal_axis[keep], np.full(len(tops), 2, np.int8)]),
                     np.concatenate([r.support[keep], np.ones(len(tops), np.int32)]))
     H = float(p.gt_centers[:, 2].mean() - floor_z)
+    ratio = {} if verify else {"floor_verify_ratio": 0.0}
     lin = solve_linear(p.preprocessed, p.tracks, rel, p.camera,
-                       LinearConfig(camera_height_m=H, floor_verify_ratio=0.0, tracks_first=False))
+                       LinearConfig(camera_height_m=H, tracks_first=False, **ratio))
     return p, rel, lin, room_z
 
 
@@ -472,26 +475,11 @@ def test_furniture_tops_the_linear_solve_dropped_stay_out_of_the_bundle_adjustme
     """Floor relations on furniture tops that the linear solve's floor verification drops (``relations_kept``)
     get no floor factor in the bundle adjustment, and the metric scale stays right; the BA's own result
     records the relations it used. Without the linear solve's record (a hand-made initial) they come back."""
-    from panosfm_graph.config import LinearConfig
-    from panosfm_graph.data import FLOOR, Relations
-    from panosfm_graph.linear import solve_linear
+    from panosfm_graph.data import FLOOR
 
-    p = make_problem("living", 48, (480, 270), seed=0, pixel_noise_px=0.3)
+    p, bad, lin, _ = _floor_on_furniture(true_floor=True, verify=True)
     r = p.relations
-    room_z = (p.gt_track_lines[:, 2] + p.gt_track_lines[:, 5]) / 2 - p.scene.to_world(np.zeros(3))[2]
-    on_floor = np.zeros(p.tracks.n, bool)
-    on_floor[r.track_a[r.kind == FLOOR]] = True
-    tops = np.flatnonzero((p.tracks.axis != 2) & (room_z > 0.3) & (room_z < 1.0) & ~on_floor)
-    assert len(tops) >= 3
-    n = len(tops)
-    bad = Relations(np.concatenate([r.kind, np.full(n, FLOOR, np.int8)]),
-                    np.concatenate([r.track_a, tops.astype(np.int32)]),
-                    np.concatenate([r.track_b, np.full(n, -1, np.int32)]),
-                    np.concatenate([r.normal_axis, np.full(n, 2, np.int8)]),
-                    np.concatenate([r.support, np.ones(n, np.int32)]))
-    H = float(p.gt_centers[:, 2].mean() - p.scene.to_world(np.zeros(3))[2])
-    lin = solve_linear(p.preprocessed, p.tracks, bad, p.camera, LinearConfig(camera_height_m=H, tracks_first=False))
-    assert lin.residuals["floor_relations_rejected"] == n
+    assert lin.residuals["floor_relations_rejected"] == bad.n - r.n
     np.testing.assert_array_equal(lin.relations_kept, np.arange(bad.n) < r.n)
     true_floor = int(np.sum(r.kind == FLOOR))
     scales, floors = {}, {}
