@@ -74,6 +74,13 @@ class TrackingConfig:
     match_angle_deg: float = 1.0  # angle difference between matched segments
     min_track_length: int = 2  # tracks with fewer segments are dropped
     bridge_angle_deg: float = 0.0  # >0: also link track ENDS across frames whose axes are within this (0: paper)
+    # loop closure (tracking.loop_pairs): frames a turn (180 degrees or more) apart whose axes are within this are
+    # matched too, so that a line both ends of the spin see is one track (0: off, the paper). Off: measured at 6
+    # (tools/bench.py --seeds 5, living/bedroom/office): ideal circles registered 97/23/85 -> 97/23/87 %, centre
+    # err. 1.16/0.65/1.11 -> 0.95/0.56/1.00 %, worst 2.4 -> 1.7 %; but on spins swaying 5 cm 96/31/57 -> 97/35/81 %,
+    # 1.18/1.03/1.57 -> 1.49/1.03/1.43 %, living capture 3 0.57 -> 2.71 % at 2.3 px: the loop registers its first
+    # frames, and the linear solve places frame 0 (the gauge, held by the BA) 0.5 m from frame 1
+    loop_angle_deg: float = 0.0
     match_angle_px: float = 1.0  # >0: angle tolerance max(match_angle_deg, atan(this / shorter length)) (0: paper)
     colinear_px: float = 1.0  # >0: colinear pieces of one frame (within this) are matched as one (0: paper)
     match_gap_frac: float | None = 0.0  # matched segments overlap along the line up to a gap of this * min(w, h) (None: paper)

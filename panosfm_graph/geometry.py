@@ -43,6 +43,14 @@ def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arctan2(np.linalg.norm(sin2, axis=-1), cos2))
 
 
+def turned_degrees(R_wc: np.ndarray) -> np.ndarray:
+    """Returns (F,) the cumulative angle (degrees) the camera has turned since the first frame."""
+    R = np.asarray(R_wc, dtype=np.float64)
+    if len(R) < 2:
+        return np.zeros(len(R))
+    return np.concatenate([[0.0], np.cumsum(rotation_angle_deg(R[:-1], R[1:]))])
+
+
 def angle_between_deg(a: np.ndarray, b: np.ndarray, unsigned: bool = False) -> np.ndarray:
     """Returns angles in degrees between vectors (last axis); ``unsigned`` treats v and -v alike."""
     a = a / np.linalg.norm(a, axis=-1, keepdims=True)

@@ -86,6 +86,7 @@ import factors
 
 from .config import GraphConfig
 from .data import FLOOR, JUNCTION, ORTHOGONAL, PARALLEL, Camera, LineModel, Preprocessed, Relations, Solution, Tracks
+from .geometry import turned_degrees
 
 log = logging.getLogger("panosfm.graph")
 
@@ -499,8 +500,6 @@ def bundle_adjust(pre: Preprocessed, tracks: Tracks, relations: Relations, initi
         values.insert(line_key(t), np.asarray(initial.lines.taylor[t], dtype=np.float64))
     gauge = _gauge(relations, prob, initial, pre.manhattan.directions)
     if config.spin_sigma_m > 0 and len(prob.frames) >= 3:
-        from .linear import turned_degrees
-
         knots = factors.spin_knots(turned_degrees(pre.R_wc)[prob.frames], config.spin_knot_deg)
         stand, arm, _ = fit_spin(initial.centers[prob.frames], R_wc[prob.frames][:, :, 2], pre.manhattan.directions,
                               *knots, walk_weight=config.spin_sigma_m / config.spin_walk_sigma_m)
@@ -610,8 +609,6 @@ def spin_fit(centers: np.ndarray, R_wc: np.ndarray, manhattan: np.ndarray, knot_
     steady the spin was (the steady style's BA centres: 0.9-2.6 % of the arm on 29 of the
     project's 30 ideal circles; 2.5 % and more on the 15 spins that sway 5 cm).
     """
-    from .linear import turned_degrees
-
     ok = np.all(np.isfinite(centers), axis=1) & np.all(np.isfinite(R_wc), axis=(1, 2))
     if ok.sum() < 3:
         return None

@@ -107,7 +107,7 @@ from .data import (
     Solution,
     Tracks,
 )
-from .geometry import pixel_rays
+from .geometry import pixel_rays, turned_degrees
 
 log = logging.getLogger("panosfm.linear")
 
@@ -386,16 +386,6 @@ def floor_verified(pre: Preprocessed, tracks: Tracks, relations: Relations, came
     keep[drop] = False
     log.info("linear: %d of %d floor relations are above the floor (furniture tops), dropped", len(drop), len(cand))
     return keep
-
-
-def turned_degrees(R_wc: np.ndarray) -> np.ndarray:
-    """Returns (F,) the cumulative angle (degrees) the camera has turned since the first frame."""
-    from .geometry import rotation_angle_deg
-
-    R = np.asarray(R_wc, dtype=np.float64)
-    if len(R) < 2:
-        return np.zeros(len(R))
-    return np.concatenate([[0.0], np.cumsum(rotation_angle_deg(R[:-1], R[1:]))])
 
 
 def _group_median(values: np.ndarray, groups: np.ndarray, n_groups: int) -> np.ndarray:

@@ -90,17 +90,22 @@ def render(K, R_wc, c, w, h, ss=2) -> np.ndarray:
 
 
 def make_capture(n_frames=60, w=320, h=180, sweep_deg=380.0, drift_deg=(0.2, 0.15, 4.0), heading_deg=25.0,
-                 seed=0, blank=False) -> Capture:
+                 seed=0, blank=False, yaw_deg=None, pitch_deg=None) -> Capture:
     """Returns an in-memory spin Capture of the room: GT poses, IMU = heading offset + growing drift.
 
-    The drift is mostly heading (a phone's tilt comes from gravity and barely drifts).
+    The drift is mostly heading (a phone's tilt comes from gravity and barely drifts). ``yaw_deg`` /
+    ``pitch_deg`` ((n_frames,) each) replace the even sweep and the default pitch.
     """
     rng = np.random.default_rng(seed)
     f = 0.6 * w
     K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
+    if yaw_deg is not None:
+        n_frames = len(yaw_deg)
     s = np.linspace(0, 1, n_frames)
-    yaw = np.radians(sweep_deg) * s
+    yaw = np.radians(sweep_deg) * s if yaw_deg is None else np.radians(np.asarray(yaw_deg, float))
     pitch, roll = np.radians(6.0 * np.sin(3 * np.pi * s)), np.radians(2.0 * np.cos(5 * s))
+    if pitch_deg is not None:
+        pitch = np.radians(np.asarray(pitch_deg, float))
     base = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float)  # camera z -> world x, camera y -> world -z
     R_gt = np.stack([Rotation.from_euler("zyx", e).as_matrix() @ base for e in zip(yaw, pitch, roll)])
     centers = np.stack([0.25 * np.cos(yaw) + 0.2, 0.25 * np.sin(yaw) + 0.1, np.full_like(yaw, 1.5)], 1)
@@ -343,6 +348,41 @@ def test_bridging_reconnects_tracks_over_missed_frames(slow_pan):
     key = t_of * cap.n_frames + pre.segments.frame[seg]
     assert len(np.unique(key)) == len(key)  # still one segment per frame per track
     assert not np.any(tracks.track_of[dropped] >= 0)
+
+
+def test_loop_closure_joins_the_tracks_of_a_spins_two_ends():
+    """loop_angle_deg matches the last frames of a turn with the first (3 degrees apart in pitch), purely."""
+    from panosfm_graph.lines.tracking import loop_pairs
+
+    # 1-degree steps over the first and the last 30 degrees, 15-degree steps between: the end overlaps the start
+    yaw = np.concatenate([np.arange(0, 31), np.arange(45, 331, 15), np.arange(335, 366)]).astype(float)
+    pitch = np.where(yaw > 300, 3.0, 0.0)  # the second pass looks 3 degrees higher: not a 2-degree neighbour
+    cap = make_capture(yaw_deg=yaw, pitch_deg=pitch, drift_deg=(0.1, 0.1, 1.0))
+    pre = preprocess(cap, with_overrides(Config(), detect={"workers": 1}))
+    F = cap.n_frames
+    pairs = loop_pairs(pre.R_wc, 6.0)
+    assert len(pairs) > 20
+    assert np.all(yaw[pairs[:, 1]] - yaw[pairs[:, 0]] >= 330)  # only frames a turn apart
+    assert len(loop_pairs(pre.R_wc, 0.0)) == 0
+
+    def spanning(tracks):
+        seg, off = tracks.members()
+        fr = pre.segments.frame[seg]
+        t_of = np.repeat(np.arange(tracks.n), np.diff(off))
+        first = np.bincount(t_of, weights=yaw[fr] <= 30, minlength=tracks.n) > 0
+        last = np.bincount(t_of, weights=yaw[fr] >= 335, minlength=tracks.n) > 0
+        return int(np.sum(first & last)), t_of, fr
+
+    open_cfg = with_overrides(Config(), tracking={"loop_angle_deg": 0.0})
+    closed_cfg = with_overrides(Config(), tracking={"loop_angle_deg": 6.0})
+    assert spanning(track_lines(cap, pre, open_cfg))[0] == 0
+    tracks = track_lines(cap, pre, closed_cfg)
+    n_loop, t_of, fr = spanning(tracks)
+    assert n_loop >= 5, n_loop
+    ev = evaluate(cap, pre, tracks, gt_px=1.5)
+    assert ev["track_purity_mean"] >= 0.95, ev
+    key = t_of * F + fr
+    assert len(np.unique(key)) == len(key)  # one segment per frame per track
 
 
 def test_fragments_of_one_line_are_joined_across_gaps(slow_pan):

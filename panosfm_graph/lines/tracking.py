@@ -10,6 +10,7 @@ from scipy.spatial import cKDTree
 
 from ..config import Config, TrackingConfig
 from ..data import Segments, Tracks
+from ..geometry import turned_degrees
 
 log = logging.getLogger("panosfm.lines")
 
@@ -35,6 +36,20 @@ def _bridge_pairs(R_wc: np.ndarray, bridge_angle_deg: float, base: np.ndarray) -
     F = len(R_wc)
     extra = wide[~np.isin(wide[:, 0] * F + wide[:, 1], base[:, 0] * F + base[:, 1])]
     return extra[np.lexsort((extra[:, 0], extra[:, 1] - extra[:, 0]))]
+
+
+def loop_pairs(R_wc: np.ndarray, loop_angle_deg: float, min_turn_deg: float = 180.0) -> np.ndarray:
+    """Returns (P, 2) frame pairs i < j within ``loop_angle_deg`` whose camera turned ``min_turn_deg`` or more between them.
+
+    Loop closure, our addition: a spin's last frames look where its first ones did (a turn apart),
+    but a few degrees off in pitch or past the start, so the neighbouring-frame pairs
+    (:func:`frame_pairs`, 2 degrees) never relate them and the lines both ends see become two tracks.
+    """
+    if loop_angle_deg <= 0 or len(R_wc) < 2:
+        return np.zeros((0, 2), dtype=np.int64)
+    wide = frame_pairs(R_wc, loop_angle_deg)
+    turned = turned_degrees(R_wc)
+    return wide[np.abs(turned[wide[:, 1]] - turned[wide[:, 0]]) >= min_turn_deg]
 
 
 def rotation_homography(K: np.ndarray, R_wc_i: np.ndarray, R_wc_j: np.ndarray) -> np.ndarray:
@@ -471,6 +486,7 @@ def track_lines(
     F = len(R_wc)
     pairs = frame_pairs(R_wc, cfg.axis_angle_deg)
     bridges = _bridge_pairs(R_wc, cfg.bridge_angle_deg, pairs)
+    loops = loop_pairs(R_wc, cfg.loop_angle_deg)
     mlines = None if directions is None or not cfg.vp_colinear else manhattan_lines(segments, labels, K, R_wc, directions)
     rep, ends = colinear_groups(segments, labels, cfg.colinear_px, mlines)
     contrast = segments.contrast if cfg.polarity_min > 0 else None
@@ -505,7 +521,7 @@ def track_lines(
         np.minimum.at(fwd_gap, ia[a], j - i)
         np.minimum.at(bwd_gap, ib[b], j - i)
 
-    for i, j in pairs:
+    for i, j in np.concatenate([pairs, loops]):
         match(int(i), int(j), idx[i], idx[j])
     # bridges, nearest in time first: only segments not yet continued within the gap take part
     for i, j in bridges:
@@ -523,7 +539,7 @@ def track_lines(
     axis[track] = labels[keep]
     log.info(
         "%d tracks from %d matches over %d frame pairs (mean length %.1f)",
-        len(ids), len(edges), len(pairs), keep.sum() / max(len(ids), 1),
+        len(ids), len(edges), len(pairs) + len(loops), keep.sum() / max(len(ids), 1),
     )
     tracks = Tracks(track_of=track_of, axis=axis)
     if cfg.merge_gap_frames > 0 and directions is not None:
