@@ -32,22 +32,29 @@ def _bridge_pairs(R_wc: np.ndarray, bridge_angle_deg: float, base: np.ndarray) -
     """Returns (P, 2) frame pairs i < j within ``bridge_angle_deg`` not in ``base``, by frame gap j - i then i."""
     if bridge_angle_deg <= 0 or len(R_wc) < 2:
         return np.zeros((0, 2), dtype=np.int64)
-    wide = frame_pairs(R_wc, bridge_angle_deg)
-    F = len(R_wc)
-    extra = wide[~np.isin(wide[:, 0] * F + wide[:, 1], base[:, 0] * F + base[:, 1])]
+    extra = _pairs_beyond(R_wc, bridge_angle_deg, base)
     return extra[np.lexsort((extra[:, 0], extra[:, 1] - extra[:, 0]))]
 
 
-def loop_pairs(R_wc: np.ndarray, loop_angle_deg: float, min_turn_deg: float = 180.0) -> np.ndarray:
+def _pairs_beyond(R_wc: np.ndarray, angle_deg: float, base: np.ndarray) -> np.ndarray:
+    """Returns (P, 2) the frame pairs i < j within ``angle_deg`` (:func:`frame_pairs`) that ``base`` does not hold."""
+    wide = frame_pairs(R_wc, angle_deg)
+    F = len(R_wc)
+    return wide[~np.isin(wide[:, 0] * F + wide[:, 1], base[:, 0] * F + base[:, 1])]
+
+
+def loop_pairs(R_wc: np.ndarray, loop_angle_deg: float, base: np.ndarray | None = None,
+               min_turn_deg: float = 180.0) -> np.ndarray:
     """Returns (P, 2) frame pairs i < j within ``loop_angle_deg`` whose camera turned ``min_turn_deg`` or more between them.
 
     Loop closure, our addition: a spin's last frames look where its first ones did (a turn apart),
     but a few degrees off in pitch or past the start, so the neighbouring-frame pairs
     (:func:`frame_pairs`, 2 degrees) never relate them and the lines both ends see become two tracks.
+    Pairs in ``base`` (those neighbouring-frame pairs, matched already) are left out.
     """
     if loop_angle_deg <= 0 or len(R_wc) < 2:
         return np.zeros((0, 2), dtype=np.int64)
-    wide = frame_pairs(R_wc, loop_angle_deg)
+    wide = _pairs_beyond(R_wc, loop_angle_deg, np.zeros((0, 2), np.int64) if base is None else base)
     turned = turned_degrees(R_wc)
     return wide[np.abs(turned[wide[:, 1]] - turned[wide[:, 0]]) >= min_turn_deg]
 
@@ -486,7 +493,7 @@ def track_lines(
     F = len(R_wc)
     pairs = frame_pairs(R_wc, cfg.axis_angle_deg)
     bridges = _bridge_pairs(R_wc, cfg.bridge_angle_deg, pairs)
-    loops = loop_pairs(R_wc, cfg.loop_angle_deg)
+    loops = loop_pairs(R_wc, cfg.loop_angle_deg, pairs)
     mlines = None if directions is None or not cfg.vp_colinear else manhattan_lines(segments, labels, K, R_wc, directions)
     rep, ends = colinear_groups(segments, labels, cfg.colinear_px, mlines)
     contrast = segments.contrast if cfg.polarity_min > 0 else None
