@@ -50,8 +50,9 @@ def _add_config_flags(p: argparse.ArgumentParser) -> None:
     g.add_argument("--camera-height", type=float, default=None, metavar="M",
                    help="camera height above the floor in metres: makes the scale metric")
     g.add_argument("--spin", choices=list(SPIN_STYLES), default=None,
-                   help="how the capture was spun: hand-held (default; the stand point wanders) or steady (the stand "
-                        "point stays put: frames between two fixed ones are placed on the circle)")
+                   help="how the capture was spun: hand-held (the stand point wanders), steady (the stand point "
+                        "stays put: frames between two fixed ones are placed on the circle) or auto (default: "
+                        "hand-held, then steady where the camera centres lie on one circle)")
     g.add_argument("--incremental", type=int, default=None, metavar="N",
                    help="solve incrementally, adding N frames per batch")
     g.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",

@@ -320,6 +320,13 @@ class GraphConfig:
     # graph.py _check_steady). Measured with the steady style: 0.009-0.019 on the 15 ideal selection circles, 0.009-
     # 0.026 on 14 kept-back ones (the 15th 0.093, at 1.8 % centre err.), 0.025-18 on the 15 swaying spins (3.3-46 %)
     steady_max_rms_arm: float = 0.022
+    # auto spin style (our addition; graph.steady_or_hand_held): where the hand-held solve left frames
+    # unregistered, the capture is solved again as a steady spin (SPIN_STYLES 'steady') and that result kept
+    # when its centres lie on one circle within steady_max_rms_arm (and it registers more): the circle the
+    # lines' frames trace says whether the blank-wall frames may be placed on it (in incremental mode after the
+    # final solve; the batches' estimates stay hand-held).
+    # False: the style as set. Measured: see README (status)
+    steady_auto: bool = True
     # metric scale: no horizontal line seen in at least this many frames may lie below the floor; the floor is
     # moved down to the deepest (graph.py _floor_below_lines; 0: off). Measured (tools/bench.py --seeds 5, the
     # similarity's scale to the truth within 10 %): selection captures 2 -> 11 of 15, kept-back 1 -> 13,
@@ -388,10 +395,11 @@ def with_overrides(config: Config, **sections: dict[str, Any]) -> Config:
 # 5 cm 1.15/1.03/1.57 -> 43.4/5.9/4.8 %, worst 46 %: only for spins that really are steady (graph.steady_max_rms_arm
 # warns where the centres say otherwise).
 SPIN_STYLES: dict[str, dict[str, dict[str, Any]]] = {
-    "hand-held": {},
+    "auto": {},  # the defaults: hand-held, and steady where the centres say so (graph.steady_auto)
+    "hand-held": {"graph": {"steady_auto": False}},
     "steady": {
         "linear": {"spin_knot_deg": 0.0, "motion_bridge_deg": 45.0},
-        "graph": {"spin_knot_deg": 0.0, "spin_position": True},
+        "graph": {"spin_knot_deg": 0.0, "spin_position": True, "steady_auto": False},
     },
 }
 

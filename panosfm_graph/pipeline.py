@@ -85,6 +85,15 @@ class RunResult:
             lines.append(f"  scale       arbitrary (no floor line verified for --camera-height{units})")
         else:
             lines.append(f"  scale       arbitrary (no --camera-height{units})")
+        style, check = s.get("spin_style"), ba.get("steady_check")
+        if style:
+            why = ""
+            if check and check.get("rms_arm") is not None:
+                verdict = "kept" if check.get("kept") else "not kept"
+                why = (f" (steady solve {verdict}: {check['registered']} frames, centres "
+                       f"{100 * check['rms_arm']:.1f} % of the arm off one circle, at most "
+                       f"{100 * check['max_rms_arm']:.1f} %)")
+            lines.append(f"  spin        {style}{why}")
         secs = s.get("seconds", {})
         if secs:
             lines.append("  seconds     " + ", ".join(f"{k} {v:.1f}" for k, v in secs.items()))
@@ -286,7 +295,7 @@ def _linear(capture: Capture, pre: Preprocessed, tracks: Tracks, relations: Rela
 
 def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
                    on_batch: Callable[[int, Solution], None] | None) -> Solution:
-    from .graph import bundle_adjust, bundle_adjust_incremental
+    from .graph import bundle_adjust, bundle_adjust_incremental, steady_or_hand_held
 
     if not result.linear.registered.any():  # nothing to adjust: the result says so (0 frames registered)
         log.warning("the linear solve registered no frame: bundle adjustment skipped")
@@ -299,8 +308,13 @@ def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
         batches = bundle_adjust_incremental(pre, result.tracks, result.relations, result.linear,
                                             config.graph, on_batch=on_batch)
         result.batches = list(batches)
-        return result.batches[-1]
-    return bundle_adjust(pre, result.tracks, result.relations, result.linear, config.graph)
+        if not config.graph.incremental_final_solve:  # the last batch is the result: kept hand-held
+            return result.batches[-1]
+        sol = result.batches[-1]  # the final solve of all frames: as the one-shot solve, then the spin style
+    else:
+        sol = bundle_adjust(pre, result.tracks, result.relations, result.linear, config.graph)
+    return steady_or_hand_held(pre, result.tracks, result.relations, result.linear.camera, config.linear,
+                               config.graph, sol)
 
 
 # --- outputs ----------------------------------------------------------------------------------------
@@ -314,12 +328,21 @@ def unregistered_why(result: RunResult, n_frames: int) -> list[str]:
     from .linear import REASON_BUNDLE_ADJUST, UNREGISTERED_REASONS
 
     codes = np.ones(n_frames, np.int64)  # no linear solve: as if no line
-    if result.linear is not None and "unregistered_reason_codes" in result.linear.residuals:
-        codes = np.asarray(result.linear.residuals["unregistered_reason_codes"], np.int64)
+    linear = _linear_residuals(result)
+    if linear is not None and "unregistered_reason_codes" in linear:
+        codes = np.asarray(linear["unregistered_reason_codes"], np.int64)
     sol = result.solution
     if sol is not None and result.linear is not None:
-        codes = np.where(result.linear.registered & ~sol.registered, REASON_BUNDLE_ADJUST, codes)
+        codes = np.where((codes == 0) & ~sol.registered, REASON_BUNDLE_ADJUST, codes)  # 0: the linear solve's
     return [UNREGISTERED_REASONS[c] for c in codes]
+
+
+def _linear_residuals(result: RunResult) -> dict | None:
+    """Returns the residuals of the linear solve the result rests on (the steady one where the auto style chose it)."""
+    sol = result.solution
+    if sol is not None and isinstance(sol.residuals, dict) and "linear_steady" in sol.residuals:
+        return sol.residuals["linear_steady"]
+    return result.linear.residuals if result.linear is not None else None
 
 
 def _summary(capture: Capture, segments: Segments, result: RunResult, config: Config,
@@ -332,9 +355,10 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
     registered = int(sol.registered.sum()) if sol is not None else 0
     why = unregistered_why(result, n)
     # floor lines holding a metric scale: few of them (one is common) make it fragile (README)
-    n_floor = int(result.linear.residuals.get("floor_count", 0) or 0) if result.linear is not None else 0
-    linear_res = dict(result.linear.residuals) if result.linear is not None else None
+    linear_res = _linear_residuals(result)
+    n_floor = int(linear_res.get("floor_count", 0) or 0) if linear_res is not None else 0
     if linear_res is not None:
+        linear_res = dict(linear_res)
         linear_res.pop("unregistered_reason_codes", None)
     summary: dict[str, Any] = {
         "panosfm_version": __version__,
@@ -356,9 +380,10 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
         "metric": bool(sol.metric) if sol is not None else False,
         "scale": (_scale_text(config.linear.camera_height_m, n_floor, sol.residuals)
                   if sol is not None and sol.metric else _arbitrary_scale_text(sol, config)),
+        "spin_style": (sol.residuals.get("spin_style") if sol is not None and sol is not result.linear else None),
         "residuals": {"linear": linear_res,
-                      "bundle_adjust": (sol.residuals if sol is not None and sol is not result.linear
-                                        else None)},
+                      "bundle_adjust": ({k: v for k, v in sol.residuals.items() if k != "linear_steady"}
+                                        if sol is not None and sol is not result.linear else None)},
         "seconds": {k: round(v, 3) for k, v in timings.items()},
         "resumed_stages": resumed,
         "peak_memory_mb": round(peak_memory_mb(), 1),

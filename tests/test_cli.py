@@ -2,6 +2,7 @@
 import pytest
 
 from panosfm_graph.cli import build_parser, config_from_args, main
+from panosfm_graph.config import with_overrides
 
 
 def test_flags_map_onto_config():
@@ -25,8 +26,12 @@ def test_spin_style_sets_its_fields_and_set_still_wins():
         for field, value in values.items():
             assert getattr(getattr(steady, section), field) == value
     assert steady.linear.motion_bridge_deg > 0 and steady.graph.spin_position
-    assert config_from_args(build_parser().parse_args(["run", "cap", "out", "--spin", "hand-held"])) == \
-        config_from_args(build_parser().parse_args(["run", "cap", "out"]))
+    default = config_from_args(build_parser().parse_args(["run", "cap", "out"]))
+    assert config_from_args(build_parser().parse_args(["run", "cap", "out", "--spin", "auto"])) == default
+    assert default.graph.steady_auto and not default.graph.spin_position
+    hand = config_from_args(build_parser().parse_args(["run", "cap", "out", "--spin", "hand-held"]))
+    assert hand == with_overrides(default, graph={"steady_auto": False})
+    assert not steady.graph.steady_auto  # already steady: nothing to try
     over = config_from_args(build_parser().parse_args(
         ["run", "cap", "out", "--spin", "steady", "--set", "linear.motion_bridge_deg=20"]))
     assert over.linear.motion_bridge_deg == 20.0 and over.graph.spin_position

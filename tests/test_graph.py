@@ -11,7 +11,7 @@ from panosfm_graph.config import GraphConfig
 from panosfm_graph.data import Solution
 from panosfm_graph.evaluate import umeyama
 from panosfm_graph.geometry import rotation_angle_deg
-from panosfm_graph.graph import bundle_adjust, bundle_adjust_incremental, line_extents
+from panosfm_graph.graph import bundle_adjust, bundle_adjust_incremental, line_extents, steady_or_hand_held
 from panosfm_graph.synth.problem import make_problem
 
 
@@ -498,14 +498,14 @@ def test_furniture_tops_the_linear_solve_dropped_stay_out_of_the_bundle_adjustme
 def test_steady_spin_places_the_frames_a_blank_wall_leaves_free():
     """``--spin steady`` (config.SPIN_STYLES): frames that see only vertical lines (their heights free) between two
     stretches their lines fix are placed on the one circle of a steady spin and kept by the bundle adjustment,
-    within 2 % of the trajectory's diameter; hand-held (the default) leaves them unregistered. On a spin that
-    sways 5 cm, the steady style's fixed stand point costs accuracy (why it is not the default), and the run
-    warns that the centres lie off one circle."""
+    within 2 % of the trajectory's diameter; hand-held leaves them unregistered. On a spin that sways 5 cm, the
+    steady style's fixed stand point costs accuracy, and the run warns that the centres lie off one circle. The
+    default (auto, :func:`steady_or_hand_held`) keeps the steady result on the first, the hand-held on the second."""
     from panosfm_graph.config import Config, with_overrides, with_spin_style
     from panosfm_graph.data import Tracks
     from panosfm_graph.linear import solve_linear
 
-    err, rms = {}, {}
+    err, rms, sols = {}, {}, {}
     for sway in (0.0, 0.05):
         p = make_problem("living", 120, (640, 360), seed=0, pixel_noise_px=0.5, rot_noise_deg=0.1, sway_m=sway)
         gap = np.arange(40, 51)  # 11 frames, ~35 degrees of turn
@@ -534,5 +534,19 @@ def test_steady_spin_places_the_frames_a_blank_wall_leaves_free():
             assert warned == (style == "steady" and sway > 0), (sway, style, rms)
             if style == "steady" and sway == 0.0:
                 assert e[np.isin(np.flatnonzero(reg), gap)].max() < 0.02, e
+            sols[style] = sol
+        # the default, auto: solved hand-held, then steady kept only where the centres lie on one circle
+        auto = steady_or_hand_held(p.preprocessed, tracks, p.relations, p.camera, base.linear, base.graph,
+                                   sols["hand-held"])
+        check = auto.residuals["steady_check"]
+        assert check["registered"] == sols["steady"].registered.sum() > check["registered_hand_held"]
+        assert abs(check["rms_arm"] - rms[sway, "steady"]) < 1e-9
+        want = "steady" if sway == 0.0 else "hand-held"
+        assert auto.residuals["spin_style"] == ("steady (auto)" if sway == 0.0 else "hand-held"), check
+        assert check["kept"] == (sway == 0.0)
+        np.testing.assert_array_equal(auto.registered, sols[want].registered)
+        np.testing.assert_allclose(auto.centers[auto.registered], sols[want].centers[auto.registered], atol=1e-9)
+        if sway == 0.0:
+            assert auto.residuals["linear_steady"]["registered"] > sols["hand-held"].registered.sum()
     assert err[0.0, "steady"] < 0.01, err
     assert err[0.05, "steady"] > err[0.05, "hand-held"], err

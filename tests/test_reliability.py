@@ -84,6 +84,11 @@ def check_result(out: Path, capture: Path) -> dict:
     assert summary["frames"]["registered"] > 0 or not any(kept.values()), kept
     frames = set(os.listdir(capture / "frames"))
     assert set(model["images"]) <= frames
+    ba = summary["residuals"]["bundle_adjust"]
+    if ba is not None:  # which spin style the result is, and where auto chose steady, why
+        assert summary["spin_style"] in ("hand-held", "steady", "steady (auto)"), summary["spin_style"]
+        check = ba.get("steady_check")
+        assert (summary["spin_style"] == "steady (auto)") == bool(check and check["kept"]), check
     return summary
 
 
