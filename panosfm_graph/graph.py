@@ -617,8 +617,9 @@ def steady_or_hand_held(pre: Preprocessed, tracks: Tracks, relations: Relations,
     t0 = time.perf_counter()
     style = SPIN_STYLES["steady"]
     linear = solve_linear(pre, tracks, relations, camera, dataclasses.replace(linear_config, **style["linear"]))
-    steady = (bundle_adjust(pre, tracks, relations, linear, dataclasses.replace(config, **style["graph"]))
-              if linear.registered.any() else linear)
+    # the circle test is made here (a rejected steady solve is no result to warn about: _check_steady)
+    trial = dataclasses.replace(config, **style["graph"], steady_max_rms_arm=float("inf"))
+    steady = bundle_adjust(pre, tracks, relations, linear, trial) if linear.registered.any() else linear
     rms = steady.residuals.get("spin_circle_rms_arm")
     n_steady, n_hand = int(steady.registered.sum()), int(reg.sum())
     kept = rms is not None and rms <= config.steady_max_rms_arm and n_steady > n_hand

@@ -48,7 +48,7 @@ import factors
 from panosfm_graph.config import GraphConfig
 from panosfm_graph.data import Solution
 from panosfm_graph.geometry import rotation_angle_deg
-from panosfm_graph.graph import bundle_adjust, bundle_adjust_incremental
+from panosfm_graph.graph import bundle_adjust, bundle_adjust_incremental, steady_or_hand_held
 from panosfm_graph.evaluate import umeyama
 
 
@@ -296,14 +296,22 @@ def run_real_scene(name: str, args) -> dict:
         sols = bundle_adjust_incremental(pre, tracks, rel, lin, gcfg, batch_frames=args.incremental,
                                          on_batch=lambda k, s: per_batch.append(time.perf_counter()))
         sol = sols[-1]
-    else:
-        sol = bundle_adjust(pre, tracks, rel, lin, gcfg)
+    else:  # as the pipeline: the auto spin style (graph.steady_auto) may keep a steady solve instead
+        sol = steady_or_hand_held(pre, tracks, rel, lin.camera, config.linear, gcfg,
+                                  bundle_adjust(pre, tracks, rel, lin, gcfg))
     t_ba = time.perf_counter() - t0
+    if sol.residuals.get("spin_style") == "steady (auto)":  # "before": the linear solve it rests on
+        from panosfm_graph.config import SPIN_STYLES
+        from panosfm_graph.linear import solve_linear
+
+        lin = solve_linear(pre, tracks, rel, lin.camera,
+                           dataclasses.replace(config.linear, **SPIN_STYLES["steady"]["linear"]))
     with tempfile.TemporaryDirectory() as tmp:
         before = real_metrics(res.capture, lin, Path(tmp) / "linear")
         after = real_metrics(res.capture, sol, Path(tmp) / "ba")
     rec = {
         "scene": name, "frames": int(len(lin.registered)), "size": f"{W}x{H}", "normals": args.normals or "default",
+        "spin_style": sol.residuals.get("spin_style"),
         "tracks": tracks.n, "observations": int(np.sum(tracks.track_of >= 0)), "relations": rel.counts(),
         "seconds_pipeline_to_linear": round(t_front, 2), "seconds_ba": round(t_ba, 2),
         "seconds_per_phase": {k: round(v["seconds"], 2) for k, v in sol.residuals.get("phases", {}).items()},
