@@ -13,7 +13,7 @@ GT tracks and relations), ``solve_linear`` with the true mean camera height (met
   one when the solution is not metric: no floor relation was available);
 * ``seconds``: the solve alone.
 
-Run: ``python tools/bench_linear.py --frames 300 --json out.json``
+Run: ``python tools/bench_linear.py --frames 300 --json out.json`` (``--spin steady``: the steady style)
 """
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ import time
 import numpy as np
 
 from panosfm_graph.cli import section_settings
-from panosfm_graph.config import LinearConfig
+from panosfm_graph.config import SPIN_STYLES, LinearConfig
 from panosfm_graph.errors import InputError
 from panosfm_graph.linear import solve_linear
 from panosfm_graph.synth.problem import make_problem
@@ -83,6 +83,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="solve from the tracks alone unless the coplanarities are needed to register (option)")
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                     help="a LinearConfig setting, e.g. spin_links=true (repeatable)")
+    ap.add_argument("--spin", choices=["hand-held", "steady"], default="hand-held",
+                    help="the spin style's linear settings (config.SPIN_STYLES; the pipeline's default, auto, keeps "
+                         "the steady solve where the bundle adjustment finds the centres on one circle)")
     ap.add_argument("--json", default=None, help="write the results here")
     args = ap.parse_args(argv)
     try:
@@ -98,7 +101,8 @@ def main(argv: list[str] | None = None) -> int:
         height = None if args.no_height else float(p.gt_centers[:, 2].mean() - floor_z)
         t0 = time.perf_counter()
         settings = {"camera_height_m": height, "motion_weight": args.motion_weight,
-                    "tracks_first": args.tracks_first, "motion_bridge_deg": args.bridge_deg, **sets}
+                    "tracks_first": args.tracks_first, "motion_bridge_deg": args.bridge_deg,
+                    **SPIN_STYLES[args.spin].get("linear", {}), **sets}
         sol = solve_linear(p.preprocessed, p.tracks, p.relations, p.camera, LinearConfig(**settings))
         dt = time.perf_counter() - t0
         r = evaluate(p, sol)
