@@ -84,9 +84,10 @@ import numpy as np
 
 import factors
 
-from .config import GraphConfig
+from .config import SPIN_STYLES, GraphConfig, LinearConfig
 from .data import FLOOR, JUNCTION, ORTHOGONAL, PARALLEL, Camera, LineModel, Preprocessed, Relations, Solution, Tracks
 from .geometry import turned_degrees
+from .linear import solve_linear
 
 log = logging.getLogger("panosfm.graph")
 
@@ -591,7 +592,7 @@ def bundle_adjust(pre: Preprocessed, tracks: Tracks, relations: Relations, initi
 
 
 def steady_or_hand_held(pre: Preprocessed, tracks: Tracks, relations: Relations, camera: Camera,
-                        linear_config, config: GraphConfig, hand_held: Solution) -> Solution:
+                        linear_config: LinearConfig, config: GraphConfig, hand_held: Solution) -> Solution:
     """Returns the steady-spin solution where the capture was a steady spin, else ``hand_held`` (our addition).
 
     ``config.steady_auto``: where the hand-held solution (``hand_held``, solved with ``linear_config``
@@ -606,9 +607,6 @@ def steady_or_hand_held(pre: Preprocessed, tracks: Tracks, relations: Relations,
     result this is; ``residuals["steady_check"]`` what the steady solve gave; a kept steady result
     carries its linear solve's residuals as ``residuals["linear_steady"]``.
     """
-    from .config import SPIN_STYLES
-    from .linear import solve_linear
-
     res = dict(hand_held.residuals)
     res["spin_style"] = "steady" if config.spin_position else "hand-held"
     reg = hand_held.registered
