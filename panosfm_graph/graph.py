@@ -601,8 +601,8 @@ def steady_or_hand_held(pre: Preprocessed, tracks: Tracks, relations: Relations,
     placed on its circle) and that solution kept when its centres lie within ``steady_max_rms_arm``
     of one circle (RMS, a share of the arm: :func:`spin_fit`) and it registers more frames. The
     steady style alone (measured, README): ideal circles 97/23/85 -> 100/96/100 % registered, but a
-    spin swaying 5 cm put 43 % centre error where 1.2 % was; its centres lay 2.5 % of the arm and
-    more off one circle on all 15 swaying captures, 2.2 % and less on 27 of 30 ideal ones.
+    spin swaying 5 cm put 43 % centre error where 1.2 % was; its centres lay 2.4 % of the arm and
+    more off one circle on all 15 swaying captures, 2.2 % and less on 28 of 30 ideal ones.
     ``camera``: the capture's (the linear solve's) camera. ``residuals["spin_style"]`` says which
     result this is; ``residuals["steady_check"]`` what the steady solve gave; a kept steady result
     carries its linear solve's residuals as ``residuals["linear_steady"]``.
