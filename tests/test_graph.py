@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -505,7 +506,7 @@ def test_steady_spin_places_the_frames_a_blank_wall_leaves_free():
     from panosfm_graph.data import Tracks
     from panosfm_graph.linear import solve_linear
 
-    err, rms, sols = {}, {}, {}
+    err, rms, sols, lins = {}, {}, {}, {}
     for sway in (0.0, 0.05):
         p = make_problem("living", 120, (640, 360), seed=0, pixel_noise_px=0.5, rot_noise_deg=0.1, sway_m=sway)
         gap = np.arange(40, 51)  # 11 frames, ~35 degrees of turn
@@ -534,7 +535,7 @@ def test_steady_spin_places_the_frames_a_blank_wall_leaves_free():
             assert warned == (style == "steady" and sway > 0), (sway, style, rms)
             if style == "steady" and sway == 0.0:
                 assert e[np.isin(np.flatnonzero(reg), gap)].max() < 0.02, e
-            sols[style] = sol
+            sols[style], lins[style] = sol, lin
         # the default, auto: solved hand-held, then steady kept only where the centres lie on one circle
         auto = steady_or_hand_held(p.preprocessed, tracks, p.relations, p.camera, base.linear, base.graph,
                                    sols["hand-held"])
@@ -549,5 +550,15 @@ def test_steady_spin_places_the_frames_a_blank_wall_leaves_free():
         np.testing.assert_allclose(auto.centers[auto.registered], sols[want].centers[auto.registered], atol=1e-9)
         if sway == 0.0:
             assert auto.residuals["linear_steady"]["registered"] > sols["hand-held"].registered.sum()
+            # the pipeline's incremental mode: batches hand-held, the choice after the final solve of all frames
+            from panosfm_graph.pipeline import RunResult, _bundle_adjust
+
+            run = RunResult(out_dir=Path("."), summary={}, tracks=tracks, relations=p.relations,
+                            linear=lins["hand-held"])
+            inc = _bundle_adjust(p.preprocessed, run, with_overrides(base, graph={"incremental_batch": 40}), None)
+            assert len(run.batches) >= 3 and all("spin_style" not in b.residuals for b in run.batches[:-1])
+            assert inc.residuals["spin_style"] == "steady (auto)"
+            np.testing.assert_array_equal(inc.registered, auto.registered)
+            np.testing.assert_allclose(inc.centers[inc.registered], auto.centers[auto.registered], atol=1e-6)
     assert err[0.0, "steady"] < 0.01, err
     assert err[0.05, "steady"] > err[0.05, "hand-held"], err
