@@ -592,10 +592,11 @@ def bundle_adjust(pre: Preprocessed, tracks: Tracks, relations: Relations, initi
 
 
 def steady_or_hand_held(pre: Preprocessed, tracks: Tracks, relations: Relations, camera: Camera,
-                        linear_config: LinearConfig, config: GraphConfig, hand_held: Solution) -> Solution:
-    """Returns the steady-spin solution where the capture was a steady spin, else ``hand_held`` (our addition).
+                        linear_config: LinearConfig, config: GraphConfig,
+                        hand_held: Solution) -> tuple[Solution, Solution | None]:
+    """Returns (the steady-spin solution, its linear solve) where the capture was steady, else (``hand_held``, None).
 
-    ``config.steady_auto``: where the hand-held solution (``hand_held``, solved with ``linear_config``
+    Our addition. ``config.steady_auto``: where the hand-held solution (``hand_held``, solved with ``linear_config``
     and ``config``) left frames unregistered, the capture is solved again in the steady style
     (``config.SPIN_STYLES['steady']``: one stand point; the frames between two that their lines fix
     placed on its circle) and that solution kept when its centres lie within ``steady_max_rms_arm``
@@ -605,13 +606,13 @@ def steady_or_hand_held(pre: Preprocessed, tracks: Tracks, relations: Relations,
     more off one circle on all 15 swaying captures, 2.2 % and less on 28 of 30 ideal ones.
     ``camera``: the capture's (the linear solve's) camera. ``residuals["spin_style"]`` says which
     result this is; ``residuals["steady_check"]`` what the steady solve gave; a kept steady result
-    carries its linear solve's residuals as ``residuals["linear_steady"]``.
+    carries its linear solve's residuals as ``residuals["linear_steady"]`` too (what a cached result keeps).
     """
     res = dict(hand_held.residuals)
     res["spin_style"] = "steady" if config.spin_position else "hand-held"
     reg = hand_held.registered
     if not config.steady_auto or config.spin_position or reg.all() or not reg.any():
-        return dataclasses.replace(hand_held, residuals=res)
+        return dataclasses.replace(hand_held, residuals=res), None
     t0 = time.perf_counter()
     style = SPIN_STYLES["steady"]
     linear = solve_linear(pre, tracks, relations, camera, dataclasses.replace(linear_config, **style["linear"]))
@@ -628,10 +629,10 @@ def steady_or_hand_held(pre: Preprocessed, tracks: Tracks, relations: Relations,
              100 * config.steady_max_rms_arm, "steady kept" if kept else "hand-held kept")
     if not kept:
         res["steady_check"] = check
-        return dataclasses.replace(hand_held, residuals=res)
+        return dataclasses.replace(hand_held, residuals=res), None
     out = dict(steady.residuals)
     out.update(spin_style="steady (auto)", steady_check=check, linear_steady=dict(linear.residuals))
-    return dataclasses.replace(steady, residuals=out)
+    return dataclasses.replace(steady, residuals=out), linear
 
 
 def spin_arm_length(centers: np.ndarray, R_wc: np.ndarray, manhattan: np.ndarray, knot_deg: float,

@@ -313,8 +313,10 @@ def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
         sol = result.batches[-1]  # the final solve of all frames: as the one-shot solve, then the spin style
     else:
         sol = bundle_adjust(pre, result.tracks, result.relations, result.linear, config.graph)
-    return steady_or_hand_held(pre, result.tracks, result.relations, result.linear.camera, config.linear,
-                               config.graph, sol)
+    # the steady linear solve is not a stage of its own: its residuals ride in the result (_linear_residuals)
+    sol, _ = steady_or_hand_held(pre, result.tracks, result.relations, result.linear.camera, config.linear,
+                                 config.graph, sol)
+    return sol
 
 
 # --- outputs ----------------------------------------------------------------------------------------

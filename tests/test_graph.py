@@ -537,8 +537,8 @@ def test_steady_spin_places_the_frames_a_blank_wall_leaves_free():
                 assert e[np.isin(np.flatnonzero(reg), gap)].max() < 0.02, e
             sols[style], lins[style] = sol, lin
         # the default, auto: solved hand-held, then steady kept only where the centres lie on one circle
-        auto = steady_or_hand_held(p.preprocessed, tracks, p.relations, p.camera, base.linear, base.graph,
-                                   sols["hand-held"])
+        auto, auto_linear = steady_or_hand_held(p.preprocessed, tracks, p.relations, p.camera, base.linear,
+                                                base.graph, sols["hand-held"])
         check = auto.residuals["steady_check"]
         assert check["registered"] == sols["steady"].registered.sum() > check["registered_hand_held"]
         assert abs(check["rms_arm"] - rms[sway, "steady"]) < 1e-9
@@ -548,8 +548,10 @@ def test_steady_spin_places_the_frames_a_blank_wall_leaves_free():
         assert not any("looks hand-held" in w for w in auto.residuals.get("warnings", []))  # a trial, not a result
         np.testing.assert_array_equal(auto.registered, sols[want].registered)
         np.testing.assert_allclose(auto.centers[auto.registered], sols[want].centers[auto.registered], atol=1e-9)
+        assert (auto_linear is None) == (sway > 0.0)
         if sway == 0.0:
             assert auto.residuals["linear_steady"]["registered"] > sols["hand-held"].registered.sum()
+            np.testing.assert_array_equal(auto_linear.registered, lins["steady"].registered)
             # the pipeline's incremental mode: batches hand-held, the choice after the final solve of all frames
             from panosfm_graph.pipeline import RunResult, _bundle_adjust
 

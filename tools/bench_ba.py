@@ -297,15 +297,10 @@ def run_real_scene(name: str, args) -> dict:
                                          on_batch=lambda k, s: per_batch.append(time.perf_counter()))
         sol = sols[-1]
     else:  # as the pipeline: the auto spin style (graph.steady_auto) may keep a steady solve instead
-        sol = steady_or_hand_held(pre, tracks, rel, lin.camera, config.linear, gcfg,
-                                  bundle_adjust(pre, tracks, rel, lin, gcfg))
+        sol, steady_linear = steady_or_hand_held(pre, tracks, rel, lin.camera, config.linear, gcfg,
+                                                 bundle_adjust(pre, tracks, rel, lin, gcfg))
+        lin = steady_linear or lin  # "before": the linear solve the result rests on
     t_ba = time.perf_counter() - t0
-    if sol.residuals.get("spin_style") == "steady (auto)":  # "before": the linear solve it rests on
-        from panosfm_graph.config import SPIN_STYLES
-        from panosfm_graph.linear import solve_linear
-
-        lin = solve_linear(pre, tracks, rel, lin.camera,
-                           dataclasses.replace(config.linear, **SPIN_STYLES["steady"]["linear"]))
     with tempfile.TemporaryDirectory() as tmp:
         before = real_metrics(res.capture, lin, Path(tmp) / "linear")
         after = real_metrics(res.capture, sol, Path(tmp) / "ba")
