@@ -36,6 +36,8 @@ def refine_manhattan_and_rotations(segments: Segments, capture: Capture, config:
     rotations. Raises :class:`TooFewLinesError` when the scene has too few
     Manhattan segments.
     """
+    if config.rotation.drift_weights not in ("frames", "length"):
+        raise ValueError(f"rotation.drift_weights must be 'frames' or 'length', not {config.rotation.drift_weights!r}")
     K = capture.camera.K
     R_imu = np.asarray(capture.R_wc_imu, dtype=np.float64)
     R = R_imu.copy()
@@ -49,12 +51,15 @@ def refine_manhattan_and_rotations(segments: Segments, capture: Capture, config:
         if config.rotation.drift_degree >= 0:
             horizontal = (labels >= 0) & (labels != 2)
             weight = np.bincount(segments.frame[horizontal], segments.lengths[horizontal], minlength=capture.n_frames)
+            if config.rotation.drift_weights == "frames":  # each frame with horizontal lines counts once
+                weight = (weight > 0).astype(np.float64)
             drift = heading_drift(R, R_imu, capture.timestamps, weight, config.rotation.drift_degree, mf.directions[2])
             R_prior = rotate_heading(R_imu, drift, mf.directions[2])
             log.info("IMU heading drift over the capture: %.2f deg", np.degrees(drift[-1] - drift[0]))
         log.info("preprocess iteration %d: %d Manhattan segments of %d", it + 1, int(np.sum(labels >= 0)), segments.n)
     if config.rotation.drift_degree >= 0:  # the last rotations against the last drift estimate
-        R = refine_rotations(segments, labels, K, R_prior, mf, config.rotation, R_wc_init=R)
+        R = refine_rotations(segments, labels, K, R_prior, mf, config.rotation, R_wc_init=R,
+                             prior_weight=config.rotation.heading_weight)
     mf = manhattan_frame(segments, K, R, config.manhattan, reference=mf)
     labels = label_segments(segments, K, R, mf, config.manhattan)
     check_enough_manhattan(labels, config.manhattan)

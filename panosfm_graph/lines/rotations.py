@@ -141,6 +141,7 @@ def refine_rotations(
     mf: ManhattanFrame,
     config: Config | RotationConfig,
     R_wc_init: np.ndarray | None = None,
+    prior_weight: float = 0.0,
 ) -> np.ndarray:
     """Returns (F, 3, 3) refined world_from_camera rotations minimising supplement Eq. 1.
 
@@ -156,7 +157,9 @@ def refine_rotations(
     from the accelerometer and does not drift, its heading does); a weak
     prior (``GAUGE_SIGMA_RAD``) towards the IMU keeps every frame determined. Levenberg-Marquardt iterations are driven from Python
     (linearize + optimize + retract). ``R_wc_init`` is the starting point
-    (default: the IMU rotations).
+    (default: the IMU rotations). ``prior_weight`` > 0: each frame is held to ``R_wc_imu`` with
+    that weight (``PriorFactorRot3``, sigma as the IMU term's) in place of the weak prior: pass the IMU
+    with its heading drift removed.
     """
     cfg = _rotation_config(config)
     F = len(R_wc_imu)
@@ -166,7 +169,9 @@ def refine_rotations(
     keys = [gtsam.symbol("r", i) for i in range(F)]
     for i in range(F):
         values.insert(keys[i], gtsam.Rot3(R0[i]))
-        graph.add(gtsam.PriorFactorRot3(keys[i], gtsam.Rot3(R_wc_imu[i]), gtsam.noiseModel.Isotropic.Sigma(3, GAUGE_SIGMA_RAD)))
+    prior = gtsam.noiseModel.Isotropic.Sigma(3, 1.0 / np.sqrt(2.0 * prior_weight) if prior_weight > 0 else GAUGE_SIGMA_RAD)
+    for i in range(F):
+        graph.add(gtsam.PriorFactorRot3(keys[i], gtsam.Rot3(R_wc_imu[i]), prior))
 
     sel = labels >= 0
     if np.any(sel):
