@@ -420,7 +420,8 @@ def test_metric_scale_checked_against_the_spin_arm():
     for name, lowered, arm_range in (("unchecked", 0, (0.0, 1e9)), ("checked", 0, GraphConfig().metric_arm_range_m),
                                      ("floor right", 3, GraphConfig().metric_arm_range_m)):
         sol = bundle_adjust(p.preprocessed, p.tracks, rel, lin,
-                            dataclasses.replace(FAST, floor_below_lines_min_obs=lowered, metric_arm_range_m=arm_range))
+                            dataclasses.replace(FAST, floor_below_lines_min_obs=lowered, metric_arm_range_m=arm_range,
+                                                resolve_scale_ratio=0.0))
         out[name] = (umeyama(sol.centers[sol.registered], p.gt_centers[sol.registered])[0], sol)
     s, sol = out["unchecked"]
     assert s < 0.6 and sol.metric and sol.residuals["spin_arm_m"] > 0.55, (s, sol.residuals["spin_arm_m"])
@@ -439,7 +440,7 @@ def test_metric_scale_checked_against_the_spin_arm():
     shapes = {}
     for name, arm_range in (("unchecked", (0.0, 1e9)), ("checked", GraphConfig().metric_arm_range_m)):
         cfg = dataclasses.replace(FAST, floor_below_lines_min_obs=0, metric_arm_range_m=arm_range,
-                                  incremental_final_solve=False)
+                                  incremental_final_solve=False, resolve_scale_ratio=0.0)
         sols = bundle_adjust_incremental(p.preprocessed, p.tracks, rel, lin, cfg, batch_frames=8)
         shapes[name] = sols
     for a, b in zip(shapes["unchecked"], shapes["checked"]):
@@ -447,6 +448,49 @@ def test_metric_scale_checked_against_the_spin_arm():
         assert np.array_equal(a.registered, b.registered)
         np.testing.assert_allclose(b.centers[b.registered], f * a.centers[a.registered], atol=1e-4)
     assert [("scale_from_arm" in b.residuals) for b in shapes["checked"]] == [False] + [True] * 5
+
+
+def test_ba_is_solved_again_at_the_scale_its_checks_chose():
+    """Where the scale checks rescale the result (here the arm check: floor on furniture, 0.42 x), the problem is
+    solved once more from the initial solution at that scale (``resolve_scale_ratio``): the result keeps the first
+    solve's scale decision (not metric, the arm 0.35 m, one warning, the same residuals) with the second solve's
+    shape, which is that of a solve started at that scale. Where the checks leave the scale alone (floor right,
+    nothing lower than the floor) nothing is solved again."""
+    from panosfm_graph.graph import _scaled
+
+    p, rel, lin, _ = _floor_on_furniture()
+    cfg = dataclasses.replace(FAST, floor_below_lines_min_obs=0)
+    once = bundle_adjust(p.preprocessed, p.tracks, rel, lin, dataclasses.replace(cfg, resolve_scale_ratio=0.0))
+    f = once.residuals["scale_vs_initial"]
+    o = once.residuals
+    assert "scale_from_arm" in o and abs(f - o["height_rescale"] * o["scale_from_arm"]) < 1e-9 and f < 0.8, o
+    sol = bundle_adjust(p.preprocessed, p.tracks, rel, lin, cfg)
+    r = sol.residuals
+    assert r["resolved_at_scale"]["factor"] == f and r["resolved_at_scale"]["kept"] and not sol.metric
+    for key in ("spin_arm_m_from_floor", "scale_from_arm", "height_rescale"):
+        assert r[key] == once.residuals[key], key
+    assert abs(r["spin_arm_m"] - 0.35) < 1e-9
+    assert len([w for w in r["warnings"] if "spin's arm" in w]) == 1
+    # its shape: a BA started from the initial solution at the final scale, with the scale held there
+    res0 = dict(lin.residuals, floor_height=lin.residuals["floor_height"] * f)
+    start = dataclasses.replace(_scaled(lin, f), residuals=res0)
+    ref = bundle_adjust(p.preprocessed, p.tracks, rel, start,
+                        dataclasses.replace(cfg, resolve_scale_ratio=0.0, metric_arm_range_m=(0.0, 1e9)))
+    assert np.array_equal(sol.registered, ref.registered)
+    g = r["scale_vs_initial"] / f  # the arm set to 0.35 m again
+    assert abs(g - 1) < 0.05, g
+    k = g / ref.residuals["scale_vs_initial"]  # ref's own checks rescaled it (the camera-to-floor distance kept)
+    np.testing.assert_allclose(sol.centers[sol.registered], k * ref.centers[ref.registered], atol=1e-6)
+    assert np.abs(sol.centers - once.centers)[sol.registered].max() > 1e-4  # it was solved again
+    d = np.max(np.linalg.norm(p.gt_centers[:, None] - p.gt_centers[None], axis=2))
+    for s in (once, sol):  # both within 0.5 % of the trajectory's diameter (median, after a similarity)
+        reg = s.registered
+        k, R, t = umeyama(s.centers[reg], p.gt_centers[reg])
+        err = np.linalg.norm(k * s.centers[reg] @ R.T + t - p.gt_centers[reg], axis=1)
+        assert np.median(err) < 0.005 * d, np.median(err) / d
+    _, rel_true, lin_true, _ = _floor_on_furniture(true_floor=True, verify=True)
+    right = bundle_adjust(p.preprocessed, p.tracks, rel_true, lin_true, dataclasses.replace(FAST))
+    assert "resolved_at_scale" not in right.residuals and abs(right.residuals["scale_vs_initial"] - 1) < 0.25
 
 
 def test_floor_relations_the_linear_solve_dropped_stay_out():
@@ -497,9 +541,9 @@ def test_furniture_tops_the_linear_solve_dropped_stay_out_of_the_bundle_adjustme
 
 
 def test_steady_spin_places_the_frames_a_blank_wall_leaves_free():
-    """``--spin steady`` (config.SPIN_STYLES): frames that see only vertical lines (their heights free) between two
-    stretches their lines fix are placed on the one circle of a steady spin and kept by the bundle adjustment,
-    within 2 % of the trajectory's diameter; hand-held leaves them unregistered. On a spin that sways 5 cm, the
+    """``--spin steady`` (config.SPIN_STYLES): frames that see only vertical lines (their heights free), or no line
+    at all, between two stretches their lines fix are placed on the one circle of a steady spin and kept by the
+    bundle adjustment, within 2 % of the trajectory's diameter; hand-held leaves them unregistered. On a spin that sways 5 cm, the
     steady style's fixed stand point costs accuracy, and the run warns that the centres lie off one circle. The
     default (auto, :func:`steady_or_hand_held`) keeps the steady result on the first, the hand-held on the second."""
     from panosfm_graph.config import Config, with_overrides, with_spin_style
@@ -510,9 +554,11 @@ def test_steady_spin_places_the_frames_a_blank_wall_leaves_free():
     for sway in (0.0, 0.05):
         p = make_problem("living", 120, (640, 360), seed=0, pixel_noise_px=0.5, rot_noise_deg=0.1, sway_m=sway)
         gap = np.arange(40, 51)  # 11 frames, ~35 degrees of turn
+        blank = np.arange(80, 84)  # 4 frames that see no line at all
         t_of, frame = p.tracks.track_of, p.preprocessed.segments.frame
         horizontal = (t_of >= 0) & (p.tracks.axis[np.maximum(t_of, 0)] != 2)
-        tracks = Tracks(np.where(horizontal & np.isin(frame, gap), -1, t_of).astype(np.int32), p.tracks.axis)
+        cut = (horizontal & np.isin(frame, gap)) | np.isin(frame, blank)
+        tracks = Tracks(np.where(cut, -1, t_of).astype(np.int32), p.tracks.axis)
         h = float(p.gt_centers[:, 2].mean() - p.scene.to_world(np.zeros(3))[2])
         base = with_overrides(Config(), linear={"camera_height_m": h},
                               graph=dataclasses.asdict(FAST) | {"spin_sigma_m": GraphConfig().spin_sigma_m})
@@ -523,10 +569,10 @@ def test_steady_spin_places_the_frames_a_blank_wall_leaves_free():
             sol = bundle_adjust(p.preprocessed, tracks, p.relations, lin, cfg.graph)
             reg = sol.registered
             if style == "hand-held":
-                assert not reg[gap].any()
+                assert not reg[gap].any() and not reg[blank].any()
                 assert reg.mean() >= 0.8
-            else:
-                assert reg[gap].all() and reg.mean() >= 0.95
+            else:  # the frames that see no line are centre variables held by the spin prior alone
+                assert reg[gap].all() and reg[blank].all() and reg.mean() >= 0.95
             s, R, t = umeyama(sol.centers[reg], p.gt_centers[reg])
             e = np.linalg.norm((s * (R @ sol.centers[reg].T)).T + t - p.gt_centers[reg], axis=1) / diameter
             err[sway, style] = float(np.median(e))
@@ -534,7 +580,7 @@ def test_steady_spin_places_the_frames_a_blank_wall_leaves_free():
             warned = any("looks hand-held" in w for w in sol.residuals.get("warnings", []))
             assert warned == (style == "steady" and sway > 0), (sway, style, rms)
             if style == "steady" and sway == 0.0:
-                assert e[np.isin(np.flatnonzero(reg), gap)].max() < 0.02, e
+                assert e[np.isin(np.flatnonzero(reg), np.r_[gap, blank])].max() < 0.02, e
             sols[style], lins[style] = sol, lin
         # the default, auto: solved hand-held, then steady kept only where the centres lie on one circle
         auto, auto_linear = steady_or_hand_held(p.preprocessed, tracks, p.relations, p.camera, base.linear,
