@@ -503,9 +503,10 @@ def bundle_adjust(pre: Preprocessed, tracks: Tracks, relations: Relations, initi
     height, the scale residuals and warnings) is kept: the second solve changes the shape, not the
     scale (where the arm gave the scale, the arm is set to ``metric_arm_fallback_m`` again). The
     second solve is kept only where it fits the images no worse (RMS reprojection; measured on a
-    swaying living capture: 0.69 -> 0.74 px with its centre error 0.6 -> 2.0 %). ``residuals["scale_vs_initial"]``: the result's scale
-    relative to ``initial``; ``residuals["resolved_at_scale"]``: the factor, whether the second solve
-    was kept, and the other solve's figures.
+    swaying living capture: 0.69 -> 0.74 px with its centre error 0.6 -> 2.0 %).
+    ``residuals["scale_vs_initial"]``: the result's scale relative to ``initial`` (the incremental
+    mode brings each batch back to it); ``residuals["resolved_at_scale"]``: the factor, whether the
+    second solve was kept, and the other solve's figures.
     """
     sol = _resolve_at_scale(pre, tracks, relations, initial, config,
                             _bundle_adjust_once(pre, tracks, relations, initial, config))

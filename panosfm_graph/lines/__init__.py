@@ -16,7 +16,7 @@ from ..data import Capture, Preprocessed, Segments, Tracks
 from .detect import detect_segments
 from .manhattan import check_enough_manhattan, label_segments, manhattan_frame
 from .rotations import heading_drift, refine_rotations, rotate_heading
-from .tracking import track_lines as _track_lines
+from .tracking import loop_pairs, track_lines as _track_lines
 
 log = logging.getLogger("panosfm.lines")
 
@@ -53,7 +53,9 @@ def refine_manhattan_and_rotations(segments: Segments, capture: Capture, config:
             weight = np.bincount(segments.frame[horizontal], segments.lengths[horizontal], minlength=capture.n_frames)
             if config.rotation.drift_weights == "frames":  # each frame with horizontal lines counts once
                 weight = (weight > 0).astype(np.float64)
-            drift = heading_drift(R, R_imu, capture.timestamps, weight, config.rotation.drift_degree, mf.directions[2])
+            ends = loop_pairs(R, config.rotation.drift_loop_deg)  # a turn apart, looking the same way
+            drift = heading_drift(R, R_imu, capture.timestamps, weight, config.rotation.drift_degree, mf.directions[2],
+                                  ends, config.rotation.drift_loop_weight)
             R_prior = rotate_heading(R_imu, drift, mf.directions[2])
             log.info("IMU heading drift over the capture: %.2f deg", np.degrees(drift[-1] - drift[0]))
         log.info("preprocess iteration %d: %d Manhattan segments of %d", it + 1, int(np.sum(labels >= 0)), segments.n)

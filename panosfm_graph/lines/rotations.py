@@ -212,6 +212,8 @@ def heading_drift(
     weights: np.ndarray,
     degree: int,
     up: np.ndarray = np.array([0.0, 0.0, 1.0]),
+    pairs: np.ndarray | None = None,
+    pair_weight: float = 10.0,
 ) -> np.ndarray:
     """Returns (F,) the IMU's heading drift (rad) per frame: a polynomial in time fitted to the corrections.
 
@@ -225,6 +227,12 @@ def heading_drift(
     more than 3 robust sigmas off. Not in the paper: it lets the IMU's
     relative rotations (supplement Eq. 1, second term) carry frames with few
     horizontal lines without carrying the drift along.
+
+    ``pairs`` (P, 2): frames a turn apart that look the same way (a spin's two ends): the
+    difference of their corrections is the drift between them, whatever the lines both see
+    bias the headings by, so each pair is a row ``p(t_j) - p(t_i)`` of weight ``pair_weight``
+    (measured: a bedroom whose biased blocks tilted the fit, heading errors -0.13 at the start
+    to +0.16 degrees at the end).
     """
     F = len(R_wc)
     if degree < 0 or F < degree + 2:
@@ -243,13 +251,19 @@ def heading_drift(
     if np.sum(keep) < degree + 2:
         return np.zeros(F)
     V = np.vander(t, degree + 1)
+    P = np.zeros((0, 2), np.int64) if pairs is None else np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    P = P[(w[P[:, 0]] > 0) & (w[P[:, 1]] > 0)] if len(P) else P
+    A = np.vstack([V, V[P[:, 1]] - V[P[:, 0]]])
+    b = np.concatenate([angle, np.angle(np.exp(1j * (angle[P[:, 1]] - angle[P[:, 0]])))])
+    w = np.concatenate([w, np.full(len(P), float(pair_weight))])
+    keep = np.concatenate([keep, np.ones(len(P), bool)])
     for _ in range(2):
         sw = np.sqrt(w * keep)
-        coef, *_ = np.linalg.lstsq(V * sw[:, None], angle * sw, rcond=None)
-        r = angle - V @ coef
+        coef, *_ = np.linalg.lstsq(A * sw[:, None], b * sw, rcond=None)
+        r = b - A @ coef
         mad = 1.4826 * np.median(np.abs(r[keep] - np.median(r[keep])))
         keep = keep & (np.abs(r) <= 3.0 * max(mad, 1e-5))
-        if np.sum(keep) < degree + 2:
+        if np.sum(keep[:F]) < degree + 2:
             break
     return V @ coef
 
