@@ -505,8 +505,8 @@ def bundle_adjust(pre: Preprocessed, tracks: Tracks, relations: Relations, initi
     second solve is kept only where it fits the images no worse (RMS reprojection; measured on a
     swaying living capture: 0.69 -> 0.74 px with its centre error 0.6 -> 2.0 %).
     ``residuals["scale_vs_initial"]``: the result's scale relative to ``initial`` (the incremental
-    mode brings each batch back to it); ``residuals["resolved_at_scale"]``: the factor, whether the
-    second solve was kept, and the other solve's figures.
+    mode brings each batch back to it); ``residuals["resolved_at_scale"]``: the factor, the seconds,
+    whether the second solve was kept, and both solves' RMS reprojection and registered frames (first, second).
     """
     sol = _resolve_at_scale(pre, tracks, relations, initial, config,
                             _bundle_adjust_once(pre, tracks, relations, initial, config))
@@ -530,9 +530,10 @@ def _resolve_at_scale(pre: Preprocessed, tracks: Tracks, relations: Relations, i
     first, r = sol.residuals, again.residuals
     rms0, rms1 = first.get("reprojection_rms_px"), r.get("reprojection_rms_px")
     kept = rms0 is None or (rms1 is not None and rms1 <= rms0)
-    first["resolved_at_scale"] = {"factor": f, "seconds": round(time.perf_counter() - t0, 3), "kept": bool(kept),
-                                  "reprojection_rms_px": rms1, "registered": int(again.registered.sum())}
+    record = {"factor": f, "seconds": round(time.perf_counter() - t0, 3), "kept": bool(kept),
+              "reprojection_rms_px": [rms0, rms1], "registered": [int(sol.registered.sum()), int(again.registered.sum())]}
     if not kept:  # the second solve fits the images worse: it went elsewhere, the first stands
+        first["resolved_at_scale"] = record
         log.info("BA: solved again at %.3g x the scale, it fits worse (RMS reprojection %.3f -> %.3f px): the "
                  "first solve kept", f, rms0, rms1)
         return sol
@@ -548,12 +549,9 @@ def _resolve_at_scale(pre: Preprocessed, tracks: Tracks, relations: Relations, i
         r["floor_height"] = None if r.get("floor_height") is None else float(r["floor_height"]) * g
         r["scale_vs_initial"] = f * g
         r["spin_arm_m"] = float(config.metric_arm_fallback_m)
-    r["resolved_at_scale"] = {
-        "factor": f, "seconds": round(time.perf_counter() - t0, 3), "kept": True,
-        "first_reprojection_rms_px": rms0, "first_registered": int(sol.registered.sum())}
+    r["resolved_at_scale"] = record
     log.info("BA: the scale checks rescaled the result by %.3g; solved again at that scale (%.2f s): RMS reprojection "
-             "%.3f -> %.3f px, %d -> %d frames", f, time.perf_counter() - t0, first.get("reprojection_rms_px", np.nan),
-             r.get("reprojection_rms_px", np.nan), int(sol.registered.sum()), int(again.registered.sum()))
+             "%.3f -> %.3f px, %d -> %d frames", f, record["seconds"], rms0, rms1, *record["registered"])
     return dataclasses.replace(again, metric=sol.metric)
 
 

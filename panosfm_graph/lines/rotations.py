@@ -252,7 +252,7 @@ def heading_drift(
         return np.zeros(F)
     V = np.vander(t, degree + 1)
     P = np.zeros((0, 2), np.int64) if pairs is None else np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
-    P = P[(w[P[:, 0]] > 0) & (w[P[:, 1]] > 0)] if len(P) else P
+    P = P[(w[P[:, 0]] > 0) & (w[P[:, 1]] > 0)]  # both frames see horizontal lines
     A = np.vstack([V, V[P[:, 1]] - V[P[:, 0]]])
     b = np.concatenate([angle, np.angle(np.exp(1j * (angle[P[:, 1]] - angle[P[:, 0]])))])
     w = np.concatenate([w, np.full(len(P), float(pair_weight))])
