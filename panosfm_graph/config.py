@@ -205,10 +205,12 @@ class LinearConfig:
     # 1.16/0.68/1.59 %; kept back 94/41/82 -> 96/44/85 %, 1.06/0.71/1.50 -> 1.20/0.71/1.34 %; swaying 95/31/49 ->
     # 96/33/57 %, 1.05/1.18/1.93 -> 1.05/1.27/2.10 %; no capture registers fewer, worst 5.5 % (was 5.5)
     min_view_eig: float = 0.005
-    # IRLS rounds (Cauchy) on coplanarity rows against wrong relations; 0 = paper (plain LS). Off by default:
-    # exact on image-free problems (10 % false relations: 251 -> 8 mm) but on the pipeline's output the benchmark
-    # got worse (living 10.3 -> 13.7 % centre error, bedroom 18 -> 0 % registered): weakly observed lines
-    robust_iterations: int = 0
+    # IRLS rounds (Cauchy) on coplanarity rows against wrong relations; 0 = paper (plain LS). On image-free problems
+    # (10 % false relations) 251 -> 8 mm. On the pipeline's output (tools/bench_ba.py --real, seed 0, the linear
+    # solve the result rests on, living/bedroom/office): oracle normals lines 2.0/3.1/11.4 -> 0.5/3.1/1.3 cm from the
+    # surfaces, centres 0.39/0.46/1.82 -> 0.30/0.46/0.39 %; default normals 27/9.9/17.5 -> 1.9/3.0/2.2 cm, 3.1/0.9/4.7
+    # -> 1.0/0.5/0.5 % (one false orthogonal pair bends the whole solve). Through the pipeline: README (status)
+    robust_iterations: int = 3
     robust_observations: bool = False  # IRLS also downweights observations far off their track's line (impure tracks)
     robust_k: float = 2.385  # Cauchy constant, in robust sigmas (1.4826 * median |residual|)
     floor_tolerance: float = 0.0  # IRLS: floor lines this share of the camera-to-floor distance ABOVE the floor are downweighted (0: never)
