@@ -205,8 +205,8 @@ class LinearConfig:
     # 1.16/0.68/1.59 %; kept back 94/41/82 -> 96/44/85 %, 1.06/0.71/1.50 -> 1.20/0.71/1.34 %; swaying 95/31/49 ->
     # 96/33/57 %, 1.05/1.18/1.93 -> 1.05/1.27/2.10 %; no capture registers fewer, worst 5.5 % (was 5.5)
     min_view_eig: float = 0.005
-    # IRLS rounds (Cauchy) on coplanarity rows against wrong relations; 0 = paper (plain LS). On image-free problems
-    # (10 % false relations) 251 -> 8 mm. On the pipeline's output (tools/bench_ba.py --real, seed 0, the linear
+    # IRLS rounds (Cauchy) on coplanarity rows against wrong relations; 0 = paper (plain LS). On an image-free problem
+    # (tests/test_linear.py, 10 % false relations) 183 -> 40 mm (10 rounds: 8 mm, but swaying living 1.11 -> 1.99 %). On the pipeline's output (tools/bench_ba.py --real, seed 0, the linear
     # solve the result rests on, living/bedroom/office): oracle normals lines 2.0/3.1/11.4 -> 0.5/3.1/1.3 cm from the
     # surfaces, centres 0.39/0.46/1.82 -> 0.30/0.46/0.39 %; default normals 27/9.9/17.5 -> 1.9/3.0/2.2 cm, 3.1/0.9/4.7
     # -> 1.0/0.5/0.5 % (one false orthogonal pair bends the whole solve). Through the pipeline: README (status)

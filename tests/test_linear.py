@@ -13,7 +13,8 @@ from panosfm_graph.evaluate import umeyama
 
 
 def Paper(**kw) -> LinearConfig:
-    """The paper's linear solve: coplanarity rows always in (explicitly: tracks_first is an option)."""
+    """The linear solve with the coplanarity rows always in (tracks_first off), else the defaults: the coplanarity
+    IRLS (robust_iterations) included; the paper's plain least squares is ``robust_iterations=0``."""
     return LinearConfig(**{"tracks_first": False, **kw})
 
 
