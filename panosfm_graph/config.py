@@ -111,6 +111,10 @@ class TrackingConfig:
     # colinear pieces of one frame are grouped by their vanishing-point lines (colinear_groups), not by their
     # own endpoints (whose angle is ~1 degree off on a 60 px piece); False: the endpoint test
     vp_colinear: bool = True
+    # a match whose mid-point, after the image shift that best aligns the pair's matches, is farther than this (px)
+    # from the other segment's vanishing-point line is a jump to a neighbouring line, not kept (tracking.line_jumps;
+    # needs the Manhattan directions; 0: off). Measured: README (status)
+    jump_px: float = 3.0
     # tracks of one axis that end and start at most this many frames apart are joined when their
     # interpretation-plane angles, fitted linearly over frames, agree within merge_tol_px (0: off). Measured
     # with the spin prior (tools/bench.py --seeds 5, registered living/bedroom/office, centre err. medians):
@@ -119,6 +123,7 @@ class TrackingConfig:
     merge_gap_frames: int = 3
     merge_tol_px: float = 2.0
     merge_overlap: bool = False  # ... and tracks whose spans overlap (two pieces of one line followed side by side)
+    merge_image_px: float = 3.0  # ... and each fit passes this close (px) to the other track's nearest segment (0: off)
     # tracks whose longest segment is shorter than this * min(w, h) are dropped (surface texture); 0: off
     min_longest_frac: float = 0.0
 
@@ -211,6 +216,9 @@ class LinearConfig:
     # surfaces, centres 0.39/0.46/1.82 -> 0.30/0.46/0.39 %; default normals 27/9.9/17.5 -> 1.9/3.0/2.2 cm, 3.1/0.9/4.7
     # -> 1.0/0.5/0.5 % (one false orthogonal pair bends the whole solve). Through the pipeline: README (status)
     robust_iterations: int = 3
+    # relations whose IRLS weight ends below this (0.1: a residual over 7 robust sigmas) are not given to the bundle
+    # adjustment (Solution.relations_kept; 0: all are). Measured: README (status)
+    reject_weight: float = 0.1
     robust_observations: bool = False  # IRLS also downweights observations far off their track's line (impure tracks)
     robust_k: float = 2.385  # Cauchy constant, in robust sigmas (1.4826 * median |residual|)
     floor_tolerance: float = 0.0  # IRLS: floor lines this share of the camera-to-floor distance ABOVE the floor are downweighted (0: never)

@@ -158,7 +158,7 @@ def _select(pre: Preprocessed, tracks: Tracks, relations: Relations, initial: So
             keep |= relations.kind == kind
     if not floor_held_scale(initial):  # the linear solve found them no floor (or had none): neither is the BA's
         keep &= relations.kind != FLOOR
-    if len(initial.relations_kept) == relations.n:  # nor the floor relations it found above the floor
+    if len(initial.relations_kept) == relations.n:  # nor those it rejected (floor lines above the floor, IRLS outliers)
         keep &= initial.relations_kept
     rel_idx = np.flatnonzero(keep & relations.between(line_ok)) if relations.n else np.zeros(0, int)
     frames = np.unique(seg.frame[s])

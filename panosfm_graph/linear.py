@@ -48,6 +48,9 @@ Formulation choices (documented deviations are marked *):
   spread, at least half a pixel at the median depth) and the system solved again. A false coplanarity
   (a cabinet front 7-9 cm before the wall, normals alike) otherwise bends the whole solve: measured
   (``tools/bench_ba.py --real``, office, oracle normals) lines 11.4 -> 1.3 cm from the surfaces.
+  The relations left below ``reject_weight`` (0.1: a residual over 7 robust sigmas) are not handed
+  on: the bundle adjustment would take them in again (measured, default normals, living: its lines
+  2.3 -> 0.7 cm from the surfaces).
 * Floor outliers* (``floor_tolerance`` > 0, with ``robust_iterations``): a floor relation whose line
   ends up above the floor (a furniture top: upward normals too) is downweighted, one-sided.
 * Gauge: the first registered camera's centre is the origin. Scale, in this order:
@@ -430,7 +433,9 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     of its observations' points (orthogonal to the direction), extent = the closest points on the
     line to its segments' end-point rays. ``R_wc`` is ``pre.R_wc`` passed through.
     With ``floor_verify_ratio`` > 0 the floor relations are verified first (:func:`floor_verified`);
-    ``relations_kept`` of the result: all relations but the floor relations it found above the floor.
+    ``relations_kept`` of the result: all relations but the floor relations it found above the floor
+    and those the robust solve left below ``reject_weight`` (the bundle adjustment leaves them out:
+    :func:`~panosfm_graph.graph.bundle_adjust`).
     """
     if config.tracks_first and config.coplanarity_weight > 0:
         paper = dataclasses.replace(config, tracks_first=False)
@@ -447,7 +452,9 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
         keep = floor_verified(pre, tracks, relations, camera, config)
         sol = solve_linear(pre, tracks, relations.subset(keep), camera, dataclasses.replace(config, floor_verify_ratio=0.0))
         sol.residuals["floor_relations_rejected"] = int(np.sum(~keep))
-        return dataclasses.replace(sol, relations_kept=keep)
+        kept = keep.copy()
+        kept[np.flatnonzero(keep)] = sol.relations_kept  # and of the verified ones, those the solve kept
+        return dataclasses.replace(sol, relations_kept=kept)
     t_start = time.perf_counter()
     seg = pre.segments
     F = len(pre.R_wc)
@@ -636,6 +643,7 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     robust_w = np.ones(n_const_rows + len(ob))
     iterations = 0
     n_down = 0
+    rel_down = np.zeros(0, np.int64)  # relations the IRLS left below reject_weight (indices into relations)
     if len(ob) and len(free_idx):
         for irls in range(max(config.robust_iterations, 0) + 1):
             x, lam, pinned, it = _active_set(assemble, full_x, depths, pinned, robust_w, not_ref, lam_min, h0)
@@ -665,6 +673,9 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
                 break
             robust_w = new_w
         n_down = int(np.sum(robust_w[:n_const_rows] < 0.5))
+        # what the robust solve found far off, the bundle adjustment does not get
+        rel_down = np.concatenate([np.flatnonzero(pair)[rs], np.flatnonzero(floor)[fs]])[
+            robust_w[:n_const_rows] < config.reject_weight]
     elif len(ob):
         lam, _ = depths(x, pinned)
 
@@ -747,7 +758,7 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
              int(registered.sum()), F, int(valid.sum()), res["colinearity_rms"] or 0.0, scale_mode, res["seconds"])
     return Solution(R_wc=np.asarray(pre.R_wc, dtype=np.float64).copy(), centers=centers, registered=registered,
                     lines=lines, camera=camera, metric=scale_mode == "metric", residuals=res,
-                    relations_kept=np.ones(relations.n, bool))
+                    relations_kept=~np.isin(np.arange(relations.n), rel_down))
 
 
 def _motion_rows(frames: np.ndarray, yaw: np.ndarray, config: LinearConfig) -> tuple[np.ndarray, np.ndarray]:

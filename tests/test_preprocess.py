@@ -676,3 +676,53 @@ def test_shift_refinement_keeps_a_trims_two_edges_apart():
         right = (t0 >= 0) & (t0 == t1)  # segment k of frame 0 and segment k of frame 1 in one track
         assert right[:12].all()  # well-separated lines match either way
         assert right[12:].all() != crossed, (m, t0[12:], t1[12:])
+
+
+def test_a_match_never_jumps_to_the_neighbouring_line():
+    """TrackingConfig.jump_px: frame 0 sees only a trim's left edge, frame 1 only its right one (5 px on); with
+    the Manhattan directions the match is 5 px off the vanishing-point line after the common shift: not kept."""
+    from panosfm_graph.lines.tracking import line_jumps, manhattan_lines
+    from panosfm_graph.lines.tracking import track_lines as track_segments
+
+    seg, labels, n = _shifted_pair(np.array([0.0, 0.0]))
+    labels = labels.copy()
+    labels[13] = -1  # frame 0: the trim's right edge (x=185) unseen
+    labels[n + 12] = -1  # frame 1: its left edge (x=180) unseen
+    K = np.array([[300.0, 0, 160], [0, 300.0, 90], [0, 0, 1]])
+    R = np.repeat(np.eye(3)[None], 2, axis=0)
+    directions = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]])  # label 0: image x, label 2: image y
+    e = seg.endpoints.astype(np.float64)
+    ml = manhattan_lines(seg, labels, K, R, directions)
+    true = np.arange(12)  # the well-separated lines, matched to themselves, and the trim's jump 12 -> 13
+    d = line_jumps(e[np.r_[true, 12]], ml[np.r_[n + true, n + 13]])
+    assert np.all(d[:12] < 1.0) and abs(d[12] - 5.0) < 1.0, d
+    for jump, mixed in ((0.0, True), (3.0, False)):
+        cfg = with_overrides(Config(), tracking={"jump_px": jump})
+        tracks = track_segments(seg, labels, K, R, cfg.tracking, image_size=(320, 180), directions=directions)
+        t0, t1 = tracks.track_of[:n], tracks.track_of[n:]
+        same = (t0 >= 0) & (t0 == t1)
+        assert same[:12].all()  # the other lines match either way
+        assert (t0[12] >= 0 and t0[12] == t1[13]) == mixed, (jump, t0[12:], t1[12:])
+
+
+def test_merge_needs_the_join_to_hold_in_the_image():
+    """merge_fragments' image_px: fragments of two parallel lines 8 px apart agree in angle within a loose
+    tol_px near the vanishing point, but not in the image; pieces of one line do."""
+    from panosfm_graph.data import Tracks
+    from panosfm_graph.lines.tracking import merge_fragments
+
+    K = np.array([[300.0, 0, 160], [0, 300.0, 90], [0, 0, 1]])
+    R = np.repeat(np.eye(3)[None], 6, axis=0)
+    directions = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]])
+    # vertical lines x=100 (frames 0-2 then 3-5: one line cut) and x=108 (frames 3-5: the neighbour)
+    ep = [[100, 20, 100, 160]] * 3 + [[100, 20, 100, 160], [108, 20, 108, 160]] * 3
+    frame = np.array([0, 1, 2, 3, 3, 4, 4, 5, 5], np.int32)
+    segs = Segments(np.array(ep, np.float32), frame, np.array([0, 1, 2, 3, 5, 7, 9]), np.zeros((9, 3), np.uint8))
+    for piece in (3, 4):  # track 1: the cut line's second piece, or the neighbouring line
+        of = np.array([0, 0, 0, -1, -1, -1, -1, -1, -1], np.int32)
+        of[[piece, piece + 2, piece + 4]] = 1
+        tracks = Tracks(of, np.array([2, 2], np.int8))
+        loose = merge_fragments(tracks, segs, K, R, directions, gap_frames=3, tol_px=20.0)
+        strict = merge_fragments(tracks, segs, K, R, directions, gap_frames=3, tol_px=20.0, image_px=3.0)
+        assert loose.n == 1  # the angle test alone joins either
+        assert strict.n == (1 if piece == 3 else 2), (piece, strict.track_of)

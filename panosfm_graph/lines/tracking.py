@@ -257,9 +257,13 @@ def residual_shift(warped: np.ndarray, eb: np.ndarray, huber_px: float = 1.0, it
     gap between a door trim's two edges.
     """
     _, Lb = _lines(eb)
-    m = 0.5 * (warped[:, :2] + warped[:, 2:])
-    n = Lb[:, :2]
-    r = np.sum(n * m, axis=1) + Lb[:, 2]
+    return _line_shift(0.5 * (warped[:, :2] + warped[:, 2:]), Lb, huber_px, iterations)
+
+
+def _line_shift(points: np.ndarray, lines: np.ndarray, huber_px: float = 1.0, iterations: int = 3) -> np.ndarray:
+    """Returns the translation t (2,) minimising the Huber-weighted distances of ``points + t`` to ``lines`` (normalised)."""
+    n = lines[:, :2]
+    r = np.sum(n * points, axis=1) + lines[:, 2]
     t = np.zeros(2)
     for _ in range(iterations):
         e = r + n @ t
@@ -267,6 +271,20 @@ def residual_shift(warped: np.ndarray, eb: np.ndarray, huber_px: float = 1.0, it
         A = (n * w[:, None]).T @ n + 0.1 * np.eye(2)
         t = np.linalg.solve(A, -(n * w[:, None]).T @ r)
     return t
+
+
+def line_jumps(warped: np.ndarray, lines_b: np.ndarray) -> np.ndarray:
+    """Returns (N,) how far (px) each warped segment's mid-point lies from its match's vanishing-point line.
+
+    Our addition to supplement §3, measured after the image shift that best aligns all the pair's
+    matches (:func:`_line_shift`, Huber): the rotation error and the common parallax are gone, and
+    what is left is a line's own parallax (below 2 px for 99 % of true matches between neighbouring
+    frames of a steady spin) or a jump to another line. ``lines_b`` are the matched segments'
+    :func:`manhattan_lines`: their direction is the vanishing point's, not a short piece's own angle.
+    """
+    mid = 0.5 * (warped[:, :2] + warped[:, 2:])
+    t = _line_shift(mid, lines_b)
+    return np.abs(np.sum(lines_b[:, :2] * (mid + t), axis=1) + lines_b[:, 2])
 
 
 def _split_conflicts(edges: np.ndarray, weights: np.ndarray, frame: np.ndarray, n: int) -> np.ndarray:
@@ -334,13 +352,31 @@ def interpretation_angle(segments: Segments, seg_ids: np.ndarray, axis: np.ndarr
     return np.arctan2(np.sum(n * directions[other[:, 1]], axis=1), np.sum(n * directions[other[:, 0]], axis=1))
 
 
+def interpretation_offset(segments: Segments, seg_ids: np.ndarray, axis: np.ndarray, angle: np.ndarray,
+                          K: np.ndarray, R_wc: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """Returns (N,) the distance (px) of each segment's mid-point from the image of the plane at ``angle``.
+
+    The inverse of :func:`interpretation_angle`: the plane through the camera holding
+    ``directions[axis]`` at ``angle`` (rad) is imaged as a line in the segment's frame. Near a
+    vanishing point a small angle is a large image distance, and the other way round, so a
+    tolerance on angles alone is uneven across the image.
+    """
+    other = np.array([[1, 2], [0, 2], [0, 1]])[axis]
+    n_w = np.cos(angle)[:, None] * directions[other[:, 0]] + np.sin(angle)[:, None] * directions[other[:, 1]]
+    f = segments.frame[seg_ids]
+    line = np.einsum("ij,nkj,nk->ni", np.linalg.inv(K).T, R_wc[f], n_w)  # K^-T R^T n: the plane's image line
+    ep = segments.endpoints[seg_ids].astype(np.float64)
+    mid = np.column_stack([0.5 * (ep[:, :2] + ep[:, 2:]), np.ones(len(ep))])
+    return np.abs(np.sum(line * mid, axis=1)) / np.maximum(np.hypot(line[:, 0], line[:, 1]), 1e-12)
+
+
 def _wrap_pi(a: np.ndarray) -> np.ndarray:
     """Returns angles modulo pi in [-pi/2, pi/2)."""
     return (a + np.pi / 2) % np.pi - np.pi / 2
 
 
 def merge_fragments(tracks: Tracks, segments: Segments, K: np.ndarray, R_wc: np.ndarray, directions: np.ndarray,
-                    gap_frames: int, tol_px: float, overlap: bool = False) -> Tracks:
+                    gap_frames: int, tol_px: float, overlap: bool = False, image_px: float = 0.0) -> Tracks:
     """Returns tracks with fragments of one 3D line joined (our addition to supplement §3).
 
     A line whose detections break into pieces (low contrast, texture) is
@@ -355,8 +391,13 @@ def merge_fragments(tracks: Tracks, segments: Segments, K: np.ndarray, R_wc: np.
     segments of one frame. With ``overlap``, tracks whose spans overlap (two
     pieces of one line followed side by side) are joined too when their fits
     agree in the middle of the overlap; in a frame where the joined track then
-    holds two segments only the longest stays. Candidate pairs come from the
-    tracks sorted by their first frame (no all-pairs loop).
+    holds two segments only the longest stays. With ``image_px`` > 0 the join
+    must also hold in the image: each track's fit, carried to the other's
+    nearest segment (its first, or last), passes within ``image_px`` of that
+    segment's mid-point (:func:`interpretation_offset`; near a vanishing point
+    two lines 14 px apart in the image are 2 px apart in angle times focal
+    length). Candidate pairs come from the tracks sorted by their first frame
+    (no all-pairs loop).
     """
     to = np.asarray(tracks.track_of)
     T = tracks.n
@@ -398,6 +439,21 @@ def merge_fragments(tracks: Tracks, segments: Segments, K: np.ndarray, R_wc: np.
     d = np.abs(_wrap_pi(icpt[b] + slope[b] * (at - first[b]) - icpt[a] - slope[a] * (at - first[a])))
     keep = d * K[0, 0] < tol_px
     a, b, d, seq = a[keep], b[keep], d[keep], seq[keep]
+    if image_px > 0 and len(a):  # and in the image: each fit against the other track's nearest segment
+        o = np.lexsort((fr, t))
+        t_o, s_o = t[o], seg[o]
+        step = t_o[1:] != t_o[:-1]
+        first_seg = np.zeros(T, np.int64)
+        last_seg = np.zeros(T, np.int64)
+        first_seg[t_o[np.r_[True, step]]] = s_o[np.r_[True, step]]
+        last_seg[t_o[np.r_[step, True]]] = s_o[np.r_[step, True]]
+
+        def off(fit: np.ndarray, at: np.ndarray) -> np.ndarray:
+            angle = icpt[fit] + slope[fit] * (segments.frame[at] - first[fit])
+            return interpretation_offset(segments, at, tracks.axis[fit].astype(np.int64), angle, K, R_wc, directions)
+
+        keep = np.maximum(off(a, first_seg[b]), off(b, last_seg[a])) < image_px
+        a, b, d, seq = a[keep], b[keep], d[keep], seq[keep]
     parent = np.arange(T)
 
     def find(i: int) -> int:
@@ -475,7 +531,12 @@ def track_lines(
     99.8/99.1/98.9 -> 100.0/98.4/97.4 %: the impure ones mix a trim's edges
     3 cm apart). With ``polarity_min`` > 0 and ``segments.contrast`` known,
     opposite-polarity segments never match (:func:`match_pair`; purity
-    98.9/98.8/98.4 -> 99.8/99.1/98.9 %). ``image_size``
+    98.9/98.8/98.4 -> 99.8/99.1/98.9 %). With the ``directions`` and
+    ``jump_px`` > 0, a match farther than that from its partner's
+    vanishing-point line once the pair's common shift is taken out
+    (:func:`line_jumps`) is a jump to a neighbouring line (a trim's other
+    edge) and is dropped; ``merge_image_px`` > 0 makes
+    :func:`merge_fragments` check its joins in the image too. ``image_size``
     (w, h) sets the distance threshold's min(w, h); by default it is taken
     from the principal point (image centre).
     """
@@ -494,8 +555,8 @@ def track_lines(
     pairs = frame_pairs(R_wc, cfg.axis_angle_deg)
     bridges = _bridge_pairs(R_wc, cfg.bridge_angle_deg, pairs)
     loops = loop_pairs(R_wc, cfg.loop_angle_deg, pairs)
-    mlines = None if directions is None or not cfg.vp_colinear else manhattan_lines(segments, labels, K, R_wc, directions)
-    rep, ends = colinear_groups(segments, labels, cfg.colinear_px, mlines)
+    mlines = None if directions is None else manhattan_lines(segments, labels, K, R_wc, directions)
+    rep, ends = colinear_groups(segments, labels, cfg.colinear_px, mlines if cfg.vp_colinear else None)
     contrast = segments.contrast if cfg.polarity_min > 0 else None
     gap = None if cfg.match_gap_frac is None else cfg.match_gap_frac * min_side
     head = manhattan & (rep == np.arange(S))  # one observation per group of colinear pieces
@@ -518,6 +579,9 @@ def track_lines(
             H = np.array([[1.0, 0.0, t[0]], [0.0, 1.0, t[1]], [0.0, 0.0, 1.0]]) @ H
             a, b, d = match_pair(ends[ia], labs[ia], ends[ib], labs[ib], H, dist_px, cfg.match_angle_deg,
                                  cfg.match_angle_px, gap, **pol)
+        if cfg.jump_px > 0 and mlines is not None and len(a):  # a chain never jumps to a neighbouring line
+            near = line_jumps(_warp(H, segments.endpoints[ia[a]].astype(np.float64)), mlines[ib[b]]) < cfg.jump_px
+            a, b, d = a[near], b[near], d[near]
         if bridge:  # mutual best among ALL segments, then kept only between a track end and a track start
             g = j - i
             end = (fwd_gap[ia[a]] >= g) & (bwd_gap[ib[b]] >= g)
@@ -551,7 +615,7 @@ def track_lines(
     tracks = Tracks(track_of=track_of, axis=axis)
     if cfg.merge_gap_frames > 0 and directions is not None:
         tracks = merge_fragments(tracks, segments, K, R_wc, directions, cfg.merge_gap_frames, cfg.merge_tol_px,
-                                 cfg.merge_overlap)
+                                 cfg.merge_overlap, cfg.merge_image_px)
     if cfg.min_longest_frac > 0:
         tracks = drop_short_tracks(tracks, segments, cfg.min_longest_frac * min_side)
     return tracks
