@@ -13,6 +13,7 @@ from factors.coplanarity import (
     plane_offset_error,
     plane_offset_factor,
 )
+from factors.heading_drift import drift_prior_error, drift_prior_factor, drift_times
 from factors.imu_rotation import imu_noise, imu_rotation_factor
 from factors.line_reprojection import (
     LineReprojectionSet,
@@ -44,6 +45,7 @@ __all__ = [
     "colinearity_error", "colinearity_factor", "colinearity_factor_builtin",
     "coplanarity_error", "coplanarity_factor", "coplanarity_factor_builtin", "floor_error", "floor_factor",
     "plane_offset_error", "plane_offset_factor",
+    "drift_prior_error", "drift_prior_factor", "drift_times",
     "imu_noise", "imu_rotation_factor",
     "LineReprojectionSet", "line_reprojection_error", "line_reprojection_factor", "reprojection_terms", "segment_distances", "segment_residuals",
     "noise_model", "projection_noise", "robust_kernel", "robust_loss", "robust_weight", "sigma_from_weight",

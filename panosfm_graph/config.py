@@ -388,6 +388,14 @@ class GraphConfig:
     # 0.70/0.72/0.76, swaying 0.74/0.70/0.88 -> 0.72/0.69/0.88); centre err. means 0.52/0.58/0.49 -> 0.47/0.56/0.47 %
     # (kept back 0.64/0.50/1.20 -> 0.66/0.48/1.12, swaying 1.14/0.96/1.56 -> 1.15/0.97/1.49). Off: 0.13/0.26/0.21 deg
     rotation_prior_sigma_deg: float = 0.1
+    # Option (off): the prior about the preprocessed rotations turned by a heading-drift ramp the BA estimates (one
+    # slope over the capture, factors.heading_drift; this: the prior on the slope's total, deg; 0: off, the plain
+    # prior). The drift fit can leave part of the IMU's drift where few horizontal lines fix the heading. Measured at
+    # 1.0 (tools/bench.py --seeds 5, 15 captures each): selection bedroom 0 rotation err. 0.115 -> 0.072 deg (its
+    # -0.14..+0.16 deg ramp gone), but bedroom 1 0.070 -> 0.170 deg, 0.93 -> 1.11 px (a -0.57 deg ramp put in;
+    # at 0.3 / 0.1: 0.127 / 0.076 deg); rotation medians 0.062/0.070/0.067 -> 0.062/0.074/0.069, swaying
+    # 0.061/0.070/0.063 -> 0.064/0.074/0.067: the lines do not determine the slope reliably
+    heading_drift_sigma_deg: float = 0.0
     focal_max_sigma_frac: float = 0.002  # phase 3 refines the focal only if its marginal std is below this share of it
     max_line_sigma_m: float = 0.1  # lines whose position std (from their factors) exceeds this are marked invalid
     max_center_sigma_m: float = 0.1  # frames whose centre std (from their observations) exceeds this are unregistered

@@ -11,7 +11,8 @@ Variables (keys made by :func:`center_key`, :func:`rotation_key`, ...):
 * ``h0``    1-vector floor height (the floor plane is ``z . X = h``), present
   when floor relations are used;
 * ``f0``    1-vector focal length fx in pixels (phase 3; fy keeps the aspect);
-* ``s<j>``  ``gtsam.Point3`` stand-point knot j, ``a0`` 2-vector arm (the spin prior, below).
+* ``s<j>``  ``gtsam.Point3`` stand-point knot j, ``a0`` 2-vector arm (the spin prior, below);
+* ``d0``    1-vector heading-drift slope (rad over the capture) of the rotation prior (phases >= 2, optional, below).
 
 Factors (``factors`` package), switched by :class:`GraphConfig`:
 line reprojection (one factor per chunk of a track's observations, sigma
@@ -28,6 +29,14 @@ relations false) their sum made a collapsed sweep cheaper than the true one;
 Geman-McClure caps each at ``k^2 / 2``), IMU relative
 rotations between consecutive registered frames (``imu_sigma_deg``, scaled by
 sqrt of the frame gap).
+
+Rotation prior (ours, phases >= 2, ``rotation_prior_sigma_deg``): each frame held to its preprocessed
+(vanishing-point) rotation; optionally (``heading_drift_sigma_deg`` > 0, off by default) turned about up
+by ``d0 * tau`` (``factors.heading_drift``; ``tau`` the frame's time in [-1/2, 1/2]), ``d0`` with a prior
+of that sigma: the drift fit of the preprocessing can leave part of the IMU's heading drift where few
+horizontal lines fix the heading, a ramp per-frame priors hold. Measured: on one bedroom spin its
+-0.14 .. +0.16 degree ramp goes (rotation error 0.115 -> 0.072 degrees), on another a -0.57 degree ramp
+comes in (0.070 -> 0.170): the lines do not determine the slope reliably (``config.py``).
 
 Spin prior (our addition, ``spin_sigma_m``; ``factors.spin_prior``): every centre lies on the circle
 the phone describes about the person's stand point (knots ``s<j>`` every ``spin_knot_deg`` of turn, a
@@ -115,6 +124,7 @@ def line_key(t: int) -> int:
 FLOOR_KEY = gtsam.symbol("h", 0)
 FOCAL_KEY = gtsam.symbol("f", 0)
 ARM_KEY = gtsam.symbol("a", 0)  # spin prior: the arm (a, b) (2-vector)
+DRIFT_KEY = gtsam.symbol("d", 0)  # rotation prior: the heading-drift slope left in the prior (1-vector, rad)
 
 
 def stand_key(j: int) -> int:
@@ -259,9 +269,19 @@ def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase:
         counts[("orthogonal", "parallel", "junction", "floor")[kind]] += 1
     if phase >= 2 and config.rotation_prior_sigma_deg > 0 and "R_prior" in gauge:
         noise = gtsam.noiseModel.Isotropic.Sigma(3, float(np.radians(config.rotation_prior_sigma_deg)))
+        tau = gauge.get("drift_tau")  # with a drift slope (heading_drift_sigma_deg): factors.drift_prior_factor
+        up = pre.manhattan.directions[2]
         for i in prob.rot_frames:
-            graph.add(gtsam.PriorFactorRot3(rotation_key(i), gauge["R_prior"][i], noise))
+            if tau is None:
+                graph.add(gtsam.PriorFactorRot3(rotation_key(i), gauge["R_prior"][i], noise))
+            else:
+                graph.add(factors.drift_prior_factor(rotation_key(i), DRIFT_KEY, gauge["R_prior"][i].matrix(), up,
+                                                     tau[i], noise))
             counts["rotation_prior"] += 1
+        if tau is not None:
+            graph.add(gtsam.PriorFactorVector(DRIFT_KEY, np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(
+                1, float(np.radians(config.heading_drift_sigma_deg)))))
+            counts["prior"] += 1
     if phase >= 2 and config.imu_prior and len(prob.rot_frames) > 1:
         fr = prob.rot_frames
         for i, j in zip(fr[:-1], fr[1:]):
@@ -324,7 +344,7 @@ def _dims(values: gtsam.Values) -> list[tuple[int, int]]:
     out = []
     for k in values.keys():
         ch = chr(gtsam.Symbol(k).chr())
-        out.append((k, 1 if ch in "hf" else 2 if ch == "a" else 3))
+        out.append((k, 1 if ch in "hfd" else 2 if ch == "a" else 3))
     return out
 
 
@@ -606,6 +626,10 @@ def _bundle_adjust_once(pre: Preprocessed, tracks: Tracks, relations: Relations,
             for i in prob.rot_frames:
                 if not values.exists(rotation_key(i)):
                     values.insert(rotation_key(i), gtsam.Rot3(_orthonormal(R_wc[i])))
+            if (config.heading_drift_sigma_deg > 0 and config.rotation_prior_sigma_deg > 0 and len(prob.rot_frames) > 1
+                    and not values.exists(DRIFT_KEY)):
+                values.insert(DRIFT_KEY, np.zeros(1))
+                gauge["drift_tau"] = factors.drift_times(np.arange(len(R_wc)), len(R_wc))
         if phase >= 3 and not values.exists(FOCAL_KEY) and "focal_free" not in gauge:
             values.insert(FOCAL_KEY, np.array([K[0, 0]]))
             sigma_f = focal_sigma(pre, relations, prob, R_wc, K, rel_mask, config, gauge, values)
@@ -657,6 +681,8 @@ def _bundle_adjust_once(pre: Preprocessed, tracks: Tracks, relations: Relations,
     residuals = sol.residuals  # _mark_undetermined returns a copy
     if values.exists(FLOOR_KEY):
         residuals["floor_height"] = float(values.atVector(FLOOR_KEY)[0])
+    if values.exists(DRIFT_KEY):  # the heading drift the BA took out of the rotation prior, over the capture
+        residuals["heading_drift_deg"] = float(np.degrees(values.atVector(DRIFT_KEY)[0]))
     if not scale_checks:
         sol.residuals["spin_arm_m"] = spin_arm_length(sol.centers, sol.R_wc, pre.manhattan.directions,
                                                       config.spin_knot_deg, config.metric_arm_min_turn_deg)

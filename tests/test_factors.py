@@ -341,3 +341,31 @@ def test_robust_loss_and_weight_equal_gtsam(name):
     else:
         np.testing.assert_allclose(loss, [est.loss(x) for x in e], rtol=1e-12, atol=1e-15)
         np.testing.assert_allclose(weight[1:], [est.weight(x) for x in e[1:]], rtol=1e-12)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_drift_prior_jacobians_and_semantics(seed):
+    """The drift-slope rotation prior's analytic Jacobians equal central differences; at s = 0 it is GTSAM's
+    PriorFactorRot3, and a frame turned by s tau about up has zero error."""
+    rng = np.random.default_rng(seed)
+    Rk, Sk = gtsam.symbol("r", 4), gtsam.symbol("d", 0)
+    Rp = random_rot(rng)
+    up = rng.normal(size=3)
+    up /= np.linalg.norm(up)
+    tau = float(rng.uniform(-0.5, 0.5))
+    f = factors.drift_prior_factor(Rk, Sk, Rp, up, tau, UNIT(3, 1.0))
+    v = gtsam.Values()
+    v.insert(Rk, gtsam.Rot3(Rp @ Rotation.from_rotvec(rng.normal(scale=0.3, size=3)).as_matrix()))
+    v.insert(Sk, np.array([rng.normal(scale=0.5)]))
+    check_jacobians(f, v)
+    plain = gtsam.PriorFactorRot3(Rk, gtsam.Rot3(Rp), UNIT(3, 1.0))
+    zero = gtsam.Values()
+    zero.insert(Rk, v.atRot3(Rk))
+    zero.insert(Sk, np.array([0.0]))
+    np.testing.assert_allclose(f.unwhitenedError(zero), plain.unwhitenedError(zero), atol=1e-12)
+    s = 0.01
+    on = gtsam.Values()
+    on.insert(Rk, gtsam.Rot3(Rotation.from_rotvec(s * tau * up).as_matrix() @ Rp))
+    on.insert(Sk, np.array([s]))
+    np.testing.assert_allclose(f.unwhitenedError(on), 0.0, atol=1e-12)
+    np.testing.assert_allclose(factors.drift_times(np.array([0, 5, 10]), 11), [-0.5, 0.0, 0.5])

@@ -296,9 +296,11 @@ def run_real_scene(name: str, args) -> dict:
         sols = bundle_adjust_incremental(pre, tracks, rel, lin, gcfg, batch_frames=args.incremental,
                                          on_batch=lambda k, s: per_batch.append(time.perf_counter()))
         sol = sols[-1]
-    else:  # as the pipeline: the auto spin style (graph.steady_auto) may keep a steady solve instead
-        sol, steady_linear = steady_or_hand_held(pre, tracks, rel, lin.camera, config.linear, gcfg,
-                                                 bundle_adjust(pre, tracks, rel, lin, gcfg))
+    else:
+        sol = bundle_adjust(pre, tracks, rel, lin, gcfg)
+    if not args.incremental or gcfg.incremental_final_solve:
+        # as the pipeline: the auto spin style (graph.steady_auto) may keep a steady solve instead
+        sol, steady_linear = steady_or_hand_held(pre, tracks, rel, lin.camera, config.linear, gcfg, sol)
         lin = steady_linear or lin  # "before": the linear solve the result rests on
     t_ba = time.perf_counter() - t0
     with tempfile.TemporaryDirectory() as tmp:
