@@ -756,9 +756,10 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     res["seconds"] = time.perf_counter() - t_start
     log.info("linear: registered %d / %d frames, %d lines, colinearity rms %.3g (%s scale) in %.2f s",
              int(registered.sum()), F, int(valid.sum()), res["colinearity_rms"] or 0.0, scale_mode, res["seconds"])
+    kept = np.ones(relations.n, bool)
+    kept[rel_down] = False
     return Solution(R_wc=np.asarray(pre.R_wc, dtype=np.float64).copy(), centers=centers, registered=registered,
-                    lines=lines, camera=camera, metric=scale_mode == "metric", residuals=res,
-                    relations_kept=~np.isin(np.arange(relations.n), rel_down))
+                    lines=lines, camera=camera, metric=scale_mode == "metric", residuals=res, relations_kept=kept)
 
 
 def _motion_rows(frames: np.ndarray, yaw: np.ndarray, config: LinearConfig) -> tuple[np.ndarray, np.ndarray]:

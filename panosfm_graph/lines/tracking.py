@@ -440,13 +440,11 @@ def merge_fragments(tracks: Tracks, segments: Segments, K: np.ndarray, R_wc: np.
     keep = d * K[0, 0] < tol_px
     a, b, d, seq = a[keep], b[keep], d[keep], seq[keep]
     if image_px > 0 and len(a):  # and in the image: each fit against the other track's nearest segment
-        o = np.lexsort((fr, t))
-        t_o, s_o = t[o], seg[o]
-        step = t_o[1:] != t_o[:-1]
-        first_seg = np.zeros(T, np.int64)
+        first_seg = np.zeros(T, np.int64)  # a track holds one segment per frame: the one in its first / last frame
         last_seg = np.zeros(T, np.int64)
-        first_seg[t_o[np.r_[True, step]]] = s_o[np.r_[True, step]]
-        last_seg[t_o[np.r_[step, True]]] = s_o[np.r_[step, True]]
+        at_first, at_last = fr == first[t], fr == last[t]
+        first_seg[t[at_first]] = seg[at_first]
+        last_seg[t[at_last]] = seg[at_last]
 
         def off(fit: np.ndarray, at: np.ndarray) -> np.ndarray:
             angle = icpt[fit] + slope[fit] * (segments.frame[at] - first[fit])
