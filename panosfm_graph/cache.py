@@ -32,9 +32,12 @@ _SEP = "__"
 
 # modules (a package: all its files) whose source is part of each stage's key; a stage's key chains the
 # keys before it, so the modules of earlier stages count for the later ones too. tests/test_cache.py
-# checks that every module a stage imports (of these two packages) is listed for it or an earlier stage
+# checks that every module a stage imports (of these two packages) is listed for it or an earlier stage,
+# or in KEYED_BY_VALUE: the config, whose values (each stage's section) are in the keys themselves, so that
+# a new option or a changed default elsewhere does not re-run detection for every capture
+KEYED_BY_VALUE: tuple[str, ...] = ("panosfm_graph.config",)
 STAGE_SOURCES: dict[str, tuple[str, ...]] = {
-    "detect": ("panosfm_graph.__init__", "panosfm_graph.pipeline", "panosfm_graph.capture", "panosfm_graph.config",
+    "detect": ("panosfm_graph.__init__", "panosfm_graph.pipeline", "panosfm_graph.capture",
                "panosfm_graph.data", "panosfm_graph.cache", "panosfm_graph.errors", "panosfm_graph.geometry", "panosfm_graph.parallel",
                "panosfm_graph.progress", "panosfm_graph.thumbnails", "panosfm_graph.lines.detect"),
     "preprocess": ("panosfm_graph.lines", "panosfm_graph.lines.manhattan", "panosfm_graph.lines.rotations"),
