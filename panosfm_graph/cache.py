@@ -34,7 +34,8 @@ _SEP = "__"
 # keys before it, so the modules of earlier stages count for the later ones too. tests/test_cache.py
 # checks that every module a stage imports (of these two packages) is listed for it or an earlier stage,
 # or in KEYED_BY_VALUE: the config, whose values (each stage's section) are in the keys themselves, so that
-# a new option or a changed default elsewhere does not re-run detection for every capture
+# a new option or a changed default elsewhere does not re-run detection for every capture. A stage that uses
+# code or constants of config.py beyond its section's values lists it by source (the BA: SPIN_STYLES)
 KEYED_BY_VALUE: tuple[str, ...] = ("panosfm_graph.config",)
 STAGE_SOURCES: dict[str, tuple[str, ...]] = {
     "detect": ("panosfm_graph.__init__", "panosfm_graph.pipeline", "panosfm_graph.capture",
@@ -45,7 +46,7 @@ STAGE_SOURCES: dict[str, tuple[str, ...]] = {
     "normals": ("panosfm_graph.normals",),
     "relations": ("panosfm_graph.relations",),
     "linear": ("panosfm_graph.linear", "factors"),
-    "bundle_adjust": ("panosfm_graph.graph", "factors"),
+    "bundle_adjust": ("panosfm_graph.graph", "factors", "panosfm_graph.config"),  # graph uses config.SPIN_STYLES
 }
 
 

@@ -133,7 +133,7 @@ class NormalsConfig:
     """Paper §3.2: per-frame surface normals (model, orientation-map or oracle)."""
 
     # "orientation-map" | "model" | "oracle". The shipped model is right on more pixels (tools/bench_normals.py:
-    # 77 % of all pixels within 20 deg vs the orientation map's 44 %, which labels only half), but through the
+    # 77 % of all pixels within 20 deg vs the orientation map's 44 %, which labels only half). Through the
     # pipeline it wins on the exact-circle spins (kept back: centres 0.57/0.47/0.49 -> 0.49/0.45/0.46 %, living 1
     # 60 -> 100 % registered) and loses on the swaying ones (tools/bench.py --sway 0.05: 1.03/0.88/1.16 ->
     # 1.62/1.05/1.29 %), which are what people film, so it is not the default.
