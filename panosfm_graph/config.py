@@ -184,6 +184,20 @@ class RelationsConfig:
     # (tools/bench_relations.py) to 1.0/.96/.97 with oracle normals and .95/.95/.79 with the orientation
     # map, recall .26/.49/.32 -> .18/.38/.24, but end to end (5 captures) 10.7/1.2/1.2 -> 11.1/1.2/3.8 %
     junction_min_support: int = 1
+    # Option (0: off, the paper): coplanarities on a vertical plane must agree with where their segments meet the
+    # floor (relations.floor_consistent: verticals standing on the floor stand on the plane's one floor line, none
+    # reaches below it), within this * min(w, h); the track pairs contradicted in floor_contact_min_frames frames
+    # are cannot-links, and with floor_contact_propagate no coplanarity may join two cannot-linked tracks' planes
+    # (relations.consistent_planes). Measured (0.01, T 0.03, hanging 0.03; README status): propagated from one frame,
+    # oracle precision orthogonal .91/.88/.87 -> .93/.91/.88, parallel .96/.81/.64 -> .98/.84/.72, kept-back
+    # captures 0.57/0.47/0.49 -> 0.50/0.46/0.51 %, but swaying ones 1.03/0.88/1.16 -> 1.43/0.91/1.20 % (9 of the 16
+    # relations it dropped on swaying living 0 were true); direct only, from 3 frames: selection and kept back about
+    # even, swaying bedroom 0.88 -> 0.64 %, but the swaying living room's lines 0.032 -> 0.048 m from the surfaces
+    floor_contact_frac: float = 0.0
+    floor_contact_propagate: bool = False
+    floor_contact_min_frames: int = 3
+    floor_hanging_frac: float = 0.03  # ... no floor relation for a line a vertical this long hangs from (a cabinet top)
+    t_junction_frac: float = 0.03  # ... a horizontal ending on the inside of a vertical (a T) is behind it
 
 
 @dataclass(frozen=True)

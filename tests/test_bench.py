@@ -27,3 +27,13 @@ def test_medians_over_seeds_skip_failures():
                        "median_over_seeds": med})
     assert "| living | panosfm | 3 (1 failed) | 70.0 % | 6.00 |" in md
     assert "| living#2 | panosfm | failed: boom |" in md
+
+
+def test_drop_captures_deletes_each_capture_once_scored(tmp_path):
+    from bench import bench
+
+    record = bench(["living"], 40, (160, 90), tmp_path, [], seed=3, drop_captures=True)
+    entry = record["scenes"]["living"]["panosfm"]
+    assert entry["exit"] == 0 and "metrics" in entry  # it was run and scored ...
+    assert list((tmp_path / "captures").iterdir()) == []  # ... and its capture is gone
+    assert (tmp_path / "bench.json").exists() and (tmp_path / "runs" / "living" / "panosfm").is_dir()

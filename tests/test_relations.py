@@ -308,3 +308,120 @@ def test_relations_between_placed_lines():
     np.testing.assert_array_equal(rel.between(np.array([True, True, False])), [True, False, False, True, False])
     np.testing.assert_array_equal(rel.between(np.ones(3, bool)), [True, True, True, True, False])
     assert not rel.between(np.zeros(0, bool)).any()
+
+
+# ---------------------------------------------------------------- where segments meet the floor (beyond the paper)
+
+
+CONTACT = dict(parallel=True, floor_contact_frac=0.03)  # 3 px on the 200 x 100 test camera
+
+
+def test_standing_verticals_off_one_floor_line_are_not_coplanar():
+    """Two verticals standing on the floor 8 px apart in height are on two planes (a cabinet before the wall).
+
+    The hand-built frame's floor starts at image row 80, below a cabinet's front at row 88; the quad between
+    the two z lines is wall and cabinet front (both normal y) but for a sliver of floor, so normals alone
+    accept the pair.
+    """
+    cabinet = [(20, 20, 20, 80), (70, 20, 70, 88)]
+    pre, tracks, nm = _frame(cabinet, [2, 2], n_frames=3)
+    nm.maps[:, 40:44, 15:40] = [0, -1, 0]  # the cabinet's front (image x 30-80) reaches down to row 88
+    assert (0, 1, 1) in _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(parallel=True)), PARALLEL)
+    assert (0, 1, 1) not in _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(**CONTACT)), PARALLEL)
+    direct = RelationsConfig(**CONTACT, floor_contact_propagate=False)  # the pair itself is contradicted
+    assert (0, 1, 1) not in _rows(detect_relations(pre, tracks, nm, CAM, direct), PARALLEL)
+    # seen in fewer frames than floor_contact_min_frames (3), the contradiction is not trusted
+    few = RelationsConfig(**CONTACT, floor_contact_min_frames=4)
+    assert (0, 1, 1) in _rows(detect_relations(pre, tracks, nm, CAM, few), PARALLEL)
+    wall = [(20, 20, 20, 80), (70, 30, 70, 80)]  # both stand on the wall's foot
+    pre, tracks, nm = _frame(wall, [2, 2], n_frames=3)
+    assert (0, 1, 1) in _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(**CONTACT)), PARALLEL)
+
+
+def test_floor_contacts_and_floor_line_consistency():
+    from panosfm_graph.relations import floor_consistent, floor_contacts, floor_masks
+
+    segs = [(10, 80, 90, 80),  # 0: the wall's foot (x line, floor below it)
+            (50, 30, 50, 80),  # 1: a z line standing on it
+            (30, 40, 30, 92),  # 2: a z line standing on the floor 12 px lower (in front of the wall)
+            (70, 20, 70, 60),  # 3: a z line ending above the floor (a window's edge)
+            (60, 30, 60, 90)]  # 4: a z line reaching below the foot, its own foot unseen (hidden)
+    labels = np.array([0, 2, 2, 2, 2])
+    pre, tracks, nm = _frame(segs, labels)
+    cfg = RelationsConfig(**CONTACT)
+    mask = floor_masks(pre, nm, CAM, cfg)
+    fc = floor_contacts(pre, nm, CAM, mask, labels, np.arange(5))
+    assert fc.floor_line.tolist() == [True, False, False, False, False]
+    assert fc.contact.tolist() == [False, True, True, False, True]
+    np.testing.assert_allclose(fc.bottom[1:], [[50, 80], [30, 92], [70, 60], [60, 90]])
+    ep = pre.segments.endpoints.astype(np.float64)
+    i, j = np.zeros(4, np.int64), np.arange(1, 5)
+    ok = floor_consistent(fc, ep, i, j, labels, np.zeros(4, np.int64), np.ones(4, np.int64), 3.0)
+    assert ok.tolist() == [True, False, True, False]
+    # on a horizontal plane (axis 2) nothing is tested
+    assert floor_consistent(fc, ep, i, j, labels, np.zeros(4, np.int64), np.full(4, 2), 3.0).all()
+
+
+def test_occluding_t_junction():
+    from panosfm_graph.relations import occluding_t
+
+    segs = np.array([(50, 10, 50, 90),   # 0: a vertical edge
+                     (10, 50, 49, 50),   # 1: a horizontal ending on its inside (a T: hidden behind it)
+                     (10, 88, 49, 88),   # 2: ending near its lower end (an L, not a T)
+                     (10, 30, 90, 30),   # 3: crossing it
+                     (10, 60, 40, 60)],  # 4: ending 10 px short of it
+                    float)
+    labels = np.array([2, 0, 0, 0, 0])
+    t = occluding_t(segs, np.zeros(4, np.int64), np.arange(1, 5), labels, 5.0)
+    assert t.tolist() == [True, False, False, False]
+    assert occluding_t(segs, np.arange(1, 5), np.zeros(4, np.int64), labels, 5.0).tolist() == t.tolist()
+
+
+def test_consistent_planes_keeps_cannot_links_apart():
+    from panosfm_graph.relations import consistent_planes
+
+    a, b = np.array([0, 1, 2, 0]), np.array([1, 2, 3, -1])
+    axis, support = np.array([0, 0, 0, 2]), np.array([5, 9, 3, 7])
+    rank = np.array([0, 2, 1, 0])  # a junction, a parallel pair, an orthogonal pair, a floor relation
+    cannot = (np.array([0]), np.array([2]), np.array([0]))
+    # by rank: 0-1 and 2-3 join, then 1-2 would put the cannot-linked 0 and 2 on one plane: dropped
+    assert consistent_planes(a, b, axis, support, *cannot, rank=rank).tolist() == [True, False, True, True]
+    # by support alone: 1-2 first, then 0-1 is the one dropped
+    assert consistent_planes(a, b, axis, support, *cannot).tolist() == [False, True, True, True]
+    # a cannot-link on another axis blocks nothing
+    assert consistent_planes(a, b, axis, support, cannot[0], cannot[1], np.array([1]), rank=rank).all()
+
+
+def test_a_vertical_hanging_from_a_floor_candidate_lifts_it_off_the_floor():
+    """A table's front edge seen against the floor is no floor line when a leg hangs from its end."""
+    segs = [(20, 85, 80, 85),   # 0: an x line inside the floor region (a table top's front edge, or the floor's)
+            (20, 86, 20, 98)]   # 1: a z line hanging 12 px down from its left end (the table's leg)
+    pre, tracks, nm = _frame(segs, [0, 2])
+    on = dict(CONTACT, floor_hanging_frac=0.05)
+    off = dict(CONTACT, floor_hanging_frac=0.0)
+    assert _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(**off)), FLOOR) == {(0, -1, 2)}
+    assert _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(**on)), FLOOR) == set()
+    # a vertical standing on the line (going up from it) says nothing against it
+    pre, tracks, nm = _frame([(20, 85, 80, 85), (20, 60, 20, 84)], [0, 2])
+    assert _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(**on)), FLOOR) == {(0, -1, 2)}
+    # nor one shorter than floor_hanging_frac * min(w, h) (5 px here)
+    pre, tracks, nm = _frame([(20, 85, 80, 85), (20, 86, 20, 89)], [0, 2])
+    assert _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(**on)), FLOOR) == {(0, -1, 2)}
+
+
+def test_floor_contacts_vanishing_points_follow_the_rotations():
+    """FloorContacts.vp[f, d] is the image of Manhattan direction d in frame f: K R_wc^T d."""
+    from scipy.spatial.transform import Rotation
+
+    from panosfm_graph.relations import floor_contacts
+
+    pre, tracks, nm = _frame(SEGS, LABELS, n_frames=2)
+    R = Rotation.from_euler("xyz", [[80, 10, 25], [95, -5, 140]], degrees=True).as_matrix()
+    dirs = Rotation.from_euler("z", 30, degrees=True).as_matrix().T  # rows: a Manhattan frame turned 30 degrees
+    pre = dataclasses.replace(pre, R_wc=R, manhattan=ManhattanFrame(dirs))
+    fc = floor_contacts(pre, nm, CAM, np.zeros(nm.valid.shape, bool), np.asarray(pre.labels, np.int64),
+                        np.arange(pre.segments.n))
+    for f in range(2):
+        for d in range(3):
+            want = CAM.K @ R[f].T @ dirs[d]
+            np.testing.assert_allclose(np.cross(fc.vp[f, d], want), 0, atol=1e-9)

@@ -19,6 +19,7 @@ import datetime
 import json
 import os
 import platform
+import shutil
 import subprocess
 import sys
 import time
@@ -36,8 +37,13 @@ def _run(cmd: list[str]) -> tuple[int, float, str]:
 
 def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peers: list[str],
           seed: int = 0, reuse_peer: bool = False, seeds: int = 1, settings: list[str] = (),
-          resume: bool = False, sway_m: float = 0.0) -> dict:
-    """Returns the benchmark record (also written to ``out/bench.json`` and ``out/bench.md``)."""
+          resume: bool = False, sway_m: float = 0.0, drop_captures: bool = False) -> dict:
+    """Returns the benchmark record (also written to ``out/bench.json`` and ``out/bench.md``).
+
+    With ``drop_captures`` each capture is deleted once its runs are scored (1.6-1.7 GB each at 300 frames
+    960x540, most of it the ground truth's depth and normal maps; the synthesis is deterministic, so a later
+    ``--resume`` run writes it again).
+    """
     from panosfm_graph.capture import load_capture
     from panosfm_graph.evaluate import evaluate_reconstruction
     from panosfm_graph.synth import synthesize
@@ -77,6 +83,8 @@ def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peer
             entry[f"colmap-{mapper}"] = _score(pdir, cap, code, secs, err, evaluate_reconstruction)
             print(f"[{name}] colmap-{mapper}: {_line(entry[f'colmap-{mapper}'])}", flush=True)
         record["scenes"][name] = entry
+        if drop_captures:
+            shutil.rmtree(cap, ignore_errors=True)
     if seeds > 1:
         record["median_over_seeds"] = _medians(record["scenes"], scenes)
     from panosfm_graph.export import to_jsonable
@@ -201,6 +209,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="synthesise spins that depart this far (m RMS) from an ideal circle (panosfm synth --sway)")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
                    help="a pipeline setting for panosfm run (repeatable)")
+    p.add_argument("--drop-captures", action="store_true",
+                   help="delete each synthetic capture once scored (45 captures at 960x540 take about 75 GB)")
     args = p.parse_args(argv)
     w, h = (int(v) for v in args.size.lower().split("x"))
     if args.peer == "auto":
@@ -214,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         peers = [s.strip() for s in args.peer.split(",") if s.strip()]
     bench([s.strip() for s in args.scenes.split(",")], args.frames, (w, h), Path(args.out), peers, args.seed,
-          args.reuse_peer, args.seeds, args.set, args.resume, args.sway)
+          args.reuse_peer, args.seeds, args.set, args.resume, args.sway, args.drop_captures)
     return 0
 
 
