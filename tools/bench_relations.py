@@ -22,13 +22,13 @@ mapped tracks seen in a common frame whose GT edges lie on a common face
 rectangle (orthogonal / parallel), share an endpoint (junction), or lie on
 the floor (floor).
 
-``kept`` scores the relations the solution rests on (``Solution.relations_kept``):
-the detected relations (all four types) are solved by the linear solve (true
-camera height, default ``LinearConfig``) and :func:`bundle_adjust`
-(``--graph-set``), which drops the floor relations above the floor, and
-(graph.verify_relations, reject_sigma) the coplanarities the tracks' parallax
-or the final residuals contradict; relations of tracks the solves do not place
-are not kept either.
+``kept`` scores the relations the product's result rests on: the whole
+pipeline runs with the normal source (true camera height, ``--graph-set``; the
+product's relation types, so parallel pairs only with ``--set
+parallel=true``), and the relations its final solution keeps
+(``Solution.relations_kept``: the linear solve drops floor relations above the
+floor and its robust outliers, the bundle adjustment those its residuals
+contradict) between lines it placed are scored.
 
     python tools/bench_relations.py --scenes living bedroom office --frames 200 --size 640x360
     python tools/bench_relations.py --set junction_dist_frac=0.05   # RelationsConfig overrides
@@ -51,8 +51,7 @@ from panosfm_graph.cli import section_settings
 from panosfm_graph.config import Config, GraphConfig, LinearConfig, NormalsConfig, RelationsConfig
 from panosfm_graph.data import FLOOR, JUNCTION, ORTHOGONAL, PARALLEL, RELATION_NAMES
 from panosfm_graph.errors import InputError
-from panosfm_graph.graph import bundle_adjust
-from panosfm_graph.linear import floor_verified, solve_linear
+from panosfm_graph.linear import floor_verified
 from panosfm_graph.normals import estimate_normals, normal_accuracy
 from panosfm_graph.pipeline import run_pipeline
 from panosfm_graph.relations import detect_relations, judge_relations, track_gt_edges
@@ -167,12 +166,13 @@ def score(rel, g: GroundTruthView, truth: dict[int, set], tol: float, fixture: f
 
 
 def bench_scene(cap: Path, work: Path, sources, width: int, tol: float, cfg: RelationsConfig,
-                normals_cache: dict, graph_cfg: GraphConfig | None = None) -> list[dict]:
+                normals_cache: dict, graph_cfg: GraphConfig | None = None,
+                parallel_kept: bool = RelationsConfig().parallel) -> list[dict]:
     """Returns one result row per normal source for the capture ``cap``.
 
-    With ``graph_cfg`` the relations are also solved (the linear solve with the true camera height,
-    then :func:`bundle_adjust` with ``graph_cfg``) and the ones the solution rests on
-    (``Solution.relations_kept``) scored as ``kept``.
+    With ``graph_cfg`` the whole pipeline also runs with each source (true camera height, ``graph_cfg``,
+    parallel pairs as ``parallel_kept``) and the relations its final solution rests on
+    (``Solution.relations_kept``, between lines it placed) are scored as ``kept``.
     """
     res = run_pipeline(cap, work / cap.name, Config(), resume=True, rerun=False, views=False, stop_after="track")
     capture, pre, tracks = res.capture, res.preprocessed, res.tracks
@@ -196,11 +196,19 @@ def bench_scene(cap: Path, work: Path, sources, width: int, tol: float, cfg: Rel
         vf, _ = score(kept, g, truth, tol)
         sc["floor_verified"] = vf["floor"]
         if graph_cfg is not None:
+            # the whole pipeline with this normal source (the product's relation types: parallel pairs only if
+            # --set parallel=true asked for them), scored on the relations its final solution rests on
             t0 = time.perf_counter()
-            lin = solve_linear(pre, tracks, rel, capture.camera, LinearConfig(camera_height_m=height))
-            ba = bundle_adjust(pre, tracks, rel, lin, graph_cfg) if lin.registered.any() else lin
-            kept, _ = score(rel.subset(ba.relations_kept), g, truth, tol)
-            sc["kept"] = {**kept, "registered": int(ba.registered.sum()), "seconds": round(time.perf_counter() - t0, 2)}
+            pcfg = dataclasses.replace(
+                Config(), normals=NormalsConfig(source=source, width=width),
+                relations=dataclasses.replace(cfg, parallel=parallel_kept),
+                linear=dataclasses.replace(LinearConfig(), camera_height_m=height), graph=graph_cfg)
+            full = run_pipeline(cap, work / f"{cap.name}-{source}", pcfg, resume=True, rerun=False, views=False)
+            rp, sol = full.relations, full.solution
+            on = (sol.relations_kept if len(sol.relations_kept) == rp.n else np.ones(rp.n, bool)) & rp.between(
+                sol.lines.valid)
+            kept, _ = score(rp.subset(on), g, truth, tol)
+            sc["kept"] = {**kept, "registered": int(sol.registered.sum()), "seconds": round(time.perf_counter() - t0, 2)}
         acc = normal_accuracy(nm, capture, pre.R_wc)
         rows.append({"scene": cap.name, "frames": capture.n_frames, "tracks": tracks.n,
                      "tracks_mapped": round(float(np.mean(g.track_edge >= 0)), 3), "source": nm.source,
@@ -247,7 +255,8 @@ def main() -> None:
     results, cache = [], {}
     for scene in args.scenes:
         cap = ensure_capture(root, scene, args.frames, args.size, args.seed)
-        for r in bench_scene(cap, root / "runs", sources, args.width, args.tol, cfg, cache, graph_cfg):
+        for r in bench_scene(cap, root / "runs", sources, args.width, args.tol, cfg, cache, graph_cfg,
+                             bool(sets.get("parallel", RelationsConfig().parallel))):
             results.append(r)
             cells = [f"{n[:5] if n != 'floor_verified' else 'fl.ver'} n={r[n]['n']} P={r[n]['precision']} R={r[n]['recall']}/{r[n]['n_gt']}"
                      for n in (*RELATION_NAMES, "floor_verified")]
