@@ -322,6 +322,19 @@ def floor_masks(
     return out
 
 
+def on_mask(mask: np.ndarray, frame: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Returns (n, ...) bool: whether points ``X`` (n, ..., 2) in mask pixels of frames ``frame`` (n,) are set in ``mask`` (F, h, w).
+
+    Points outside the image are not.
+    """
+    F, h, w = mask.shape
+    xi = np.rint(X[..., 0]).astype(np.int64)
+    yi = np.rint(X[..., 1]).astype(np.int64)
+    inside = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
+    ff = np.broadcast_to(np.asarray(frame, np.int64).reshape((-1,) + (1,) * (X.ndim - 2)), xi.shape)
+    return inside & mask[ff, np.clip(yi, 0, h - 1), np.clip(xi, 0, w - 1)]
+
+
 @dataclasses.dataclass(frozen=True)
 class FloorContacts:
     """Where segments meet the floor, per segment (index = segment id; see :func:`floor_contacts`).
@@ -355,7 +368,6 @@ def floor_contacts(pre: Preprocessed, normals: NormalMaps, camera: Camera, mask:
     upper side.
     """
     seg = pre.segments
-    F, h, w = mask.shape
     N = seg.n
     K, Kinv = camera.K, np.linalg.inv(camera.K)
     up = pre.manhattan.directions[2] * (1.0 if pre.manhattan.directions[2, 2] >= 0 else -1.0)
@@ -379,11 +391,7 @@ def floor_contacts(pre: Preprocessed, normals: NormalMaps, camera: Camera, mask:
         return np.einsum("n...c,nc->n...", r, up_c) / np.linalg.norm(r, axis=-1)
 
     def on_floor(x):  # (n, ..., 2) image points -> bool: inside the image and on the floor region
-        xi = np.rint(x[..., 0] * scale).astype(np.int64)
-        yi = np.rint(x[..., 1] * scale).astype(np.int64)
-        inside = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
-        ff = np.broadcast_to(f.reshape((-1,) + (1,) * (x.ndim - 2)), xi.shape)
-        return inside & mask[ff, np.clip(yi, 0, h - 1), np.clip(xi, 0, w - 1)]
+        return on_mask(mask, f, x * scale)
 
     a, b = ep[:, :2], ep[:, 2:]
     vert = labels[segs] == 2
@@ -437,10 +445,8 @@ def hanging_verticals(fc: FloorContacts, ep: np.ndarray, frame: np.ndarray, labe
     a, b = pairs[:, 0], pairs[:, 1]
     v_first = labels[a] == 2
     v, h = np.where(v_first, a, b), np.where(v_first, b, a)
-    m = (labels[v] == 2) & (labels[h] != 2) & np.isin(v, vert)
-    # the pair may come from the vertical's lower end near the horizontal: keep the upper-end ones
-    d_top = np.minimum(np.linalg.norm(fc.top[v] - ep[h, :2], axis=1), np.linalg.norm(fc.top[v] - ep[h, 2:], axis=1))
-    out[h[m & (d_top <= near_px)]] = True
+    # the only points of verticals are their upper ends; a pair of two verticals or two horizontals says nothing
+    out[h[(labels[v] == 2) & (labels[h] != 2)]] = True
     return out
 
 
@@ -688,14 +694,10 @@ def detect_relations(
     if config.floor:
         hz = tracked[labels[tracked] != 2]
         if len(hz):
-            F, h, w = mask.shape
             t = np.linspace(0.0, 1.0, FLOOR_SAMPLES)[None, :, None]
             e = ep[hz] * normals.scale
             X = e[:, None, :2] * (1.0 - t) + e[:, None, 2:] * t  # (N, K, 2)
-            xi, yi = np.rint(X[..., 0]).astype(np.int64), np.rint(X[..., 1]).astype(np.int64)
-            inside = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
-            on = mask[frame[hz][:, None], np.clip(yi, 0, h - 1), np.clip(xi, 0, w - 1)] & inside
-            i = hz[on.all(axis=1)]
+            i = hz[on_mask(mask, frame[hz], X).all(axis=1)]
             if contacts is not None and config.floor_hanging_frac > 0:  # tracks with a vertical hanging from them
                 hang = hanging_verticals(contacts, ep, frame, labels, tracked, config.junction_corner_frac * min_side,
                                          config.floor_hanging_frac * min_side, span)
@@ -716,7 +718,9 @@ def detect_relations(
             apart = ~consistent_planes(uniq[:, 1], uniq[:, 2], uniq[:, 3], support, c[:, 0], c[:, 1], c[:, 2], ~weak,
                                        rank)
         else:  # only the contradicted pairs themselves
-            key = lambda a, b, k: (a * (int(uniq[:, 1:3].max(initial=0)) + 2) + b + 1) * 3 + k
+            def key(a, b, k):  # one integer per (track_a, track_b >= -1, axis)
+                return ((a + 1) * (tracks.n + 1) + (b + 1)) * 3 + k
+
             apart = np.isin(key(uniq[:, 1], uniq[:, 2], uniq[:, 3]), key(c[:, 0], c[:, 1], c[:, 2])) & (uniq[:, 2] >= 0)
         log.debug("floor contacts: %d cannot-links, %d coplanarities dropped", len(c), int((apart & ~weak).sum()))
         weak |= apart
