@@ -601,7 +601,7 @@ def consistent_planes(track_a: np.ndarray, track_b: np.ndarray, axis: np.ndarray
     return keep
 
 
-def _junction_pairs(pre, normals, i, j, labels, ep, min_side, cfg, dirs):
+def _junction_pairs(pre, normals, i, j, labels, ep, min_side, cfg, dirs, size):
     """Returns the junction candidates (i, j) that meet as an L (paper §3.2 plus two checks of ours).
 
     The paper's test (endpoints within ``junction_dist_frac``) also accepts
@@ -610,7 +610,11 @@ def _junction_pairs(pre, normals, i, j, labels, ep, min_side, cfg, dirs):
     ``min(w, h)`` of the intersection of their supporting lines (an L, not a
     T); with ``junction_normals`` the quad between them -- the inside of the
     L, which a face bounded by both lines fills -- must pass the orthogonal
-    normal test.
+    normal test. With ``junction_border_px`` (and the corner test) the ends
+    at the corner must lie more than that inside the image ``size`` (w, h):
+    where the frame cuts two lines their ends meet, but no corner is seen
+    (a nightstand's edge and the wall's foot behind it, both cut by the
+    image's bottom row).
     """
     if cfg.junction_corner_frac > 0 and len(i):
         def homog(e):
@@ -625,6 +629,15 @@ def _junction_pairs(pre, normals, i, j, labels, ep, min_side, cfg, dirs):
         lim = cfg.junction_corner_frac * min_side
         near = to_corner
         keep = finite & (near(ep[i]) < lim) & (near(ep[j]) < lim)
+        if cfg.junction_border_px > 0:
+            b = cfg.junction_border_px
+
+            def corner_end(e):
+                near0 = np.linalg.norm(e[:, :2] - X, axis=1) <= np.linalg.norm(e[:, 2:] - X, axis=1)
+                return np.where(near0[:, None], e[:, :2], e[:, 2:])
+
+            for e in (corner_end(ep[i]), corner_end(ep[j])):
+                keep &= (e[:, 0] > b) & (e[:, 0] < size[0] - 1 - b) & (e[:, 1] > b) & (e[:, 1] < size[1] - 1 - b)
         i, j = i[keep], j[keep]
     if cfg.junction_normals and len(i):
         qcfg = dataclasses.replace(cfg, orthogonal=True)
@@ -688,7 +701,8 @@ def detect_relations(
         pairs = _frame_pairs(pts, np.tile(frame[tracked], 2), owner, config.junction_dist_frac * min_side, span)
         i, j = pairs[:, 0], pairs[:, 1]
         diff = labels[i] != labels[j]
-        i, j = _junction_pairs(pre, normals, i[diff], j[diff], labels, ep, min_side, config, dirs)
+        i, j = _junction_pairs(pre, normals, i[diff], j[diff], labels, ep, min_side, config, dirs,
+                               (camera.width, camera.height))
         add(JUNCTION, i, j, 3 - labels[i] - labels[j])
 
     if config.floor:

@@ -126,6 +126,21 @@ def test_junction_needs_an_l_corner_with_consistent_normals():
     assert (2, 3, 1) not in no_normals and (0, 1, 1) in no_normals
 
 
+def test_junction_cut_by_the_image_border_is_no_corner():
+    """Beyond the paper: two lines whose ends meet where the frame cuts them show no corner (junction_border_px)."""
+    labels = [0, 2]
+
+    def found(top, cfg):  # an x line and a z line meeting at (60, top) on the y-facing wall
+        pre, tracks, nm = _frame([(10, top, 60, top), (60, top, 60, top + 45)], labels)
+        return _rows(detect_relations(pre, tracks, nm, CAM, cfg), JUNCTION)
+
+    ours = RelationsConfig()
+    assert ours.junction_border_px > 0
+    assert found(10.0, ours) == {(0, 1, 1)}  # the corner inside the image
+    assert found(0.5, ours) == set()  # both ends on the top row: cut by the frame
+    assert found(0.5, dataclasses.replace(ours, junction_border_px=0.0)) == {(0, 1, 1)}
+
+
 def test_switches_turn_relation_types_off():
     pre, tracks, nm = _frame(SEGS, LABELS)
     rel = detect_relations(pre, tracks, nm, CAM, RelationsConfig(parallel=True, orthogonal=False, floor=False, quad_clear_frac=0.0))

@@ -31,6 +31,7 @@ floor and its robust outliers, the bundle adjustment those its residuals
 contradict) between lines it placed are scored.
 
     python tools/bench_relations.py --scenes living bedroom office --frames 200 --size 640x360
+    python tools/bench_relations.py --seeds 3 --no-solve   # 9 captures, pooled precision with 95 % intervals
     python tools/bench_relations.py --set junction_dist_frac=0.05   # RelationsConfig overrides
     python tools/bench_relations.py --graph-set verify_relations=true   # GraphConfig overrides for 'kept'
 """
@@ -149,7 +150,8 @@ def gt_relation_sets(pre, tracks, g: GroundTruthView, tol: float) -> dict[int, s
 
 
 def score(rel, g: GroundTruthView, truth: dict[int, set], tol: float, fixture: float = 0.05) -> dict:
-    """Returns per relation type: n, unk (unjudged), precision (at ``tol``, fixtures at ``fixture``), recall, n_gt."""
+    """Returns per relation type: n, unk (unjudged), n_true, precision (at ``tol``, fixtures at ``fixture``),
+    recall (n_found of n_gt)."""
     ok = judge_relations(rel, g.track_edge, g.edges_room, g.face_axis, g.face_offset, g.axis_to_room,
                          g.floor_z, tol, g.shell_min, g.shell_max, fixture)
     out = {}
@@ -158,10 +160,10 @@ def score(rel, g: GroundTruthView, truth: dict[int, set], tol: float, fixture: f
         j = m & (ok >= 0)
         found = {(a, b, c) for a, b, c, o in zip(rel.track_a[m].tolist(), rel.track_b[m].tolist(),
                                                  rel.normal_axis[m].tolist(), ok[m].tolist()) if o == 1}
-        out[name] = {"n": int(m.sum()), "unk": int((m & (ok < 0)).sum()),
+        out[name] = {"n": int(m.sum()), "unk": int((m & (ok < 0)).sum()), "n_true": int((ok[j] == 1).sum()),
                      "precision": round(float((ok[j] == 1).mean()), 3) if j.any() else None,
                      "recall": round(len(found & truth[k]) / len(truth[k]), 3) if truth[k] else None,
-                     "n_gt": len(truth[k])}
+                     "n_found": len(found & truth[k]), "n_gt": len(truth[k])}
     return out, ok
 
 
@@ -225,6 +227,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=200)
     ap.add_argument("--size", default="640x360")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seeds", type=int, default=1, help="captures per scene (seeds SEED .. SEED + n - 1); with more "
+                    "than one capture the pooled precision and recall per source follow, with 95 %% Wilson intervals")
     ap.add_argument("--width", type=int, default=NormalsConfig().width, help="normal-map width (px)")
     ap.add_argument("--tol", type=float, default=0.02, help="coplanarity tolerance (m)")
     ap.add_argument("--root", default="/tmp/bench_relations", help="captures and pipeline caches go here")
@@ -253,23 +257,65 @@ def main() -> None:
     root = Path(args.root)
     root.mkdir(parents=True, exist_ok=True)
     results, cache = [], {}
-    for scene in args.scenes:
-        cap = ensure_capture(root, scene, args.frames, args.size, args.seed)
+    for scene, seed in ((sc, args.seed + k) for sc in args.scenes for k in range(max(args.seeds, 1))):
+        cap = ensure_capture(root, scene, args.frames, args.size, seed)
+        name = scene if args.seeds <= 1 else f"{scene}#{seed}"
         for r in bench_scene(cap, root / "runs", sources, args.width, args.tol, cfg, cache, graph_cfg,
                              bool(sets.get("parallel", RelationsConfig().parallel))):
             results.append(r)
             cells = [f"{n[:5] if n != 'floor_verified' else 'fl.ver'} n={r[n]['n']} P={r[n]['precision']} R={r[n]['recall']}/{r[n]['n_gt']}"
                      for n in (*RELATION_NAMES, "floor_verified")]
-            print(f"{scene:8s} {r['source']:15s} tracks={r['tracks']} mapped={r['tracks_mapped']} | "
+            print(f"{name:8s} {r['source']:15s} tracks={r['tracks']} mapped={r['tracks_mapped']} | "
                   + " | ".join(cells) + f" | {r['relations_s']}s")
             if "kept" in r:
                 k = r["kept"]
                 print(f"{'':8s} {'  kept by solves':15s} registered={k['registered']}/{r['frames']} | "
                       + " | ".join(f"{n[:5]} n={k[n]['n']} P={k[n]['precision']} R={k[n]['recall']}" for n in RELATION_NAMES)
                       + f" | {k['seconds']}s")
+    pooled = pool(results) if len(results) > len(sources) else {}
+    for source, by_type in pooled.items():
+        print(f"{'pooled':8s} {source:15s} " + " | ".join(
+            f"{n[:5] if n != 'floor_verified' else 'fl.ver'} P={v['precision']} [{v['low']}, {v['high']}] "
+            f"({v['n_true']}/{v['n_judged']}) R={v['recall']}"
+            for n, v in by_type.items()))
     if args.json:
         with open(args.json, "w") as fh:
-            json.dump(results, fh, indent=1)
+            json.dump({"rows": results, "pooled": pooled} if pooled else results, fh, indent=1)
+
+
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """Returns the Wilson score interval (low, high) of a binomial proportion k / n (95 % by default)."""
+    if n == 0:
+        return float("nan"), float("nan")
+    p = k / n
+    c = (p + z * z / (2 * n)) / (1 + z * z / n)
+    h = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return c - h, c + h
+
+
+def pool(rows: list[dict]) -> dict:
+    """Returns {source: {type: pooled precision (true / judged over all captures), Wilson interval, recall}}.
+
+    The relations the whole pipeline kept (``kept``) are pooled as source ``"<source> kept"``.
+    """
+    out: dict = {}
+    for r in rows:
+        for source, scores, names in ((r["source"], r, (*RELATION_NAMES, "floor_verified")),
+                                      (f"{r['source']} kept", r.get("kept"), RELATION_NAMES)):
+            for name in names if scores else ():
+                v = out.setdefault(source, {}).setdefault(name, {"n_true": 0, "n_judged": 0, "n_found": 0, "n_gt": 0})
+                c = scores[name]
+                v["n_true"] += c["n_true"]
+                v["n_judged"] += c["n"] - c["unk"]
+                v["n_found"] += c["n_found"]
+                v["n_gt"] += c["n_gt"]
+    for by_type in out.values():
+        for v in by_type.values():
+            lo, hi = wilson(v["n_true"], v["n_judged"])
+            v["precision"] = round(v["n_true"] / v["n_judged"], 3) if v["n_judged"] else None
+            v["low"], v["high"] = (round(lo, 3), round(hi, 3)) if v["n_judged"] else (None, None)
+            v["recall"] = round(v["n_found"] / v["n_gt"], 3) if v["n_gt"] else None
+    return out
 
 
 if __name__ == "__main__":
