@@ -185,10 +185,13 @@ class RelationsConfig:
     # .88/.84/.73 -> .94/.84/.74; end to end (tools/bench.py --seeds 5) corner reprojection 1.13/0.71/0.92 ->
     # 0.82/0.71/0.90 px (kept-back --seed 50: 0.88/0.89/0.85, unchanged)
     quad_clear_samples: int = 9
-    # junctions detected in fewer frames than this are dropped (1: the paper). 2 lifts junction precision
-    # (tools/bench_relations.py) to 1.0/.96/.97 with oracle normals and .95/.95/.79 with the orientation
-    # map, recall .26/.49/.32 -> .18/.38/.24, but end to end (5 captures) 10.7/1.2/1.2 -> 11.1/1.2/3.8 %
-    junction_min_support: int = 1
+    # junctions detected in fewer frames than this are dropped (1: the paper). Measured 2026-12-04 (pooled over 9
+    # captures, tools/bench_relations.py --seeds 3 --no-solve): junction precision oracle .959 -> .975, orientation
+    # map .884 -> .929, model .922 -> .941, recall .45/.49/.26 -> .37/.40/.19; end to end (tools/bench.py --seeds 5,
+    # medians living/bedroom/office) selection 0.46/0.46/0.44 -> 0.45/0.46/0.44 %, kept back 0.58/0.47/0.49 ->
+    # 0.58/0.46/0.50 % (living 1 60 -> 100 % registered), swaying 1.03/0.88/1.16 -> 0.99/0.64/1.15 %. (An earlier
+    # pipeline, 2026-11: worse end to end, 10.7/1.2/1.2 -> 11.1/1.2/3.8 %.)
+    junction_min_support: int = 2
     # ... and their ends at the corner must lie more than this inside the image (0: anywhere): the frame's edge
     # cuts lines, it makes no corner. tools/bench_relations.py --no-solve: junction precision, oracle
     # .95/.95/.94 -> .95/1.0/.94, orientation map .83/.92/.83 -> .86/.96/.83, model .92/.92/.86 -> .96/1.0/.86,

@@ -78,7 +78,9 @@ def test_known_frame_relations():
     assert np.all(rel.track_a[rel.kind != FLOOR] < rel.track_b[rel.kind != FLOOR])
 
 
-PAPER_JUNCTION = dict(junction_corner_frac=0.0, junction_normals=False)  # the paper's endpoint test only
+# the paper's endpoint test only, in every frame
+PAPER_JUNCTION = dict(junction_corner_frac=0.0, junction_normals=False, junction_border_px=0.0, junction_min_support=1)
+ONE_FRAME = dict(junction_min_support=1)  # the hand-built scenes below are one frame
 
 
 def test_junction_threshold():
@@ -118,11 +120,11 @@ def test_junction_needs_an_l_corner_with_consistent_normals():
 
     paper = found(RelationsConfig(parallel=True, **PAPER_JUNCTION))
     assert {(0, 1, 1), (2, 3, 1)} <= paper
-    ours = found(RelationsConfig(parallel=True))
+    ours = found(RelationsConfig(parallel=True, **ONE_FRAME))
     assert (0, 1, 1) in ours
     assert (2, 3, 1) not in ours  # a gap: the L-corner test rejects it
     assert (4, 5, 2) not in ours  # normals say the inside of the L is the wall (y), not a floor (z)
-    no_normals = found(RelationsConfig(parallel=True, junction_normals=False))
+    no_normals = found(RelationsConfig(parallel=True, junction_normals=False, **ONE_FRAME))
     assert (2, 3, 1) not in no_normals and (0, 1, 1) in no_normals
 
 
@@ -130,8 +132,8 @@ def test_junction_cut_by_the_image_border_is_no_corner():
     """Beyond the paper: two lines whose ends meet where the frame cuts them show no corner (junction_border_px)."""
     labels = [0, 2]
 
-    def found(top, cfg):  # an x line and a z line meeting at (60, top) on the y-facing wall
-        pre, tracks, nm = _frame([(10, top, 60, top), (60, top, 60, top + 45)], labels)
+    def found(top, cfg):  # an x line and a z line meeting at (60, top) on the y-facing wall, seen in two frames
+        pre, tracks, nm = _frame([(10, top, 60, top), (60, top, 60, top + 45)], labels, n_frames=2)
         return _rows(detect_relations(pre, tracks, nm, CAM, cfg), JUNCTION)
 
     ours = RelationsConfig()
@@ -192,7 +194,11 @@ def test_oracle_relations_on_a_spin(spin):
     # faces hidden from the camera, e.g. the top of a box above eye level, are dropped)
     m = rel.kind == JUNCTION
     assert ok[m].mean() >= 0.95, ok[m].mean()
-    assert len(truth & _rows(rel, JUNCTION)) >= 0.45 * len(truth)
+    one = detect_relations(P.preprocessed, P.tracks, nm, P.camera, RelationsConfig(parallel=True, **ONE_FRAME))
+    assert len(truth & _rows(one, JUNCTION)) >= 0.45 * len(truth)
+    # junction_min_support 2 (the default) keeps those seen in two frames or more: measured recall 0.32 (19 / 60)
+    assert _rows(rel, JUNCTION) <= _rows(one, JUNCTION)
+    assert len(truth & _rows(rel, JUNCTION)) >= 0.25 * len(truth)
     assert np.all(rel.track_a < P.tracks.n) and np.all(rel.track_b < P.tracks.n)
 
 
@@ -260,10 +266,11 @@ def test_real_capture_precision_with_oracle_normals(real_capture):
             assert np.all(ok == 1), (kind, np.mean(ok == 1))
     ours, _ = bench.score(detect_relations(pre, tracks, nm, cam, RelationsConfig(parallel=True)), g, truth, 0.02)
     paper, _ = bench.score(detect_relations(pre, tracks, nm, cam, RelationsConfig(parallel=True, **PAPER_JUNCTION)), g, truth, 0.02)
-    # measured (living, 200 frames 320x180): orthogonal 0.79, parallel 0.89, junction 0.96 (paper's test 0.6x)
+    # measured (living, 200 frames 320x180): orthogonal 0.79, parallel 0.89, junction 0.96 (24 seen in two frames
+    # or more; paper's test 0.6x)
     assert ours["orthogonal"]["precision"] >= 0.7 and ours["orthogonal"]["recall"] >= 0.25
     assert ours["parallel"]["precision"] >= 0.8 and ours["parallel"]["recall"] >= 0.25
-    assert ours["junction"]["precision"] >= 0.9 and ours["junction"]["n"] >= 30
+    assert ours["junction"]["precision"] >= 0.9 and ours["junction"]["n"] >= 20
     assert ours["junction"]["precision"] >= paper["junction"]["precision"] + 0.15
     assert ours["floor"]["recall"] >= 0.8  # floor precision is low (furniture tops): see the module docstring
 
