@@ -620,23 +620,19 @@ def _junction_pairs(pre, normals, i, j, labels, ep, min_side, cfg, dirs, size):
         def homog(e):
             return np.cross(np.column_stack([e[:, :2], np.ones(len(e))]), np.column_stack([e[:, 2:], np.ones(len(e))]))
 
-        def to_corner(e):
-            return np.minimum(np.linalg.norm(e[:, :2] - X, axis=1), np.linalg.norm(e[:, 2:] - X, axis=1))
+        def corner_end(e):  # (P, 2) each segment's end nearer the corner X
+            near0 = np.linalg.norm(e[:, :2] - X, axis=1) <= np.linalg.norm(e[:, 2:] - X, axis=1)
+            return np.where(near0[:, None], e[:, :2], e[:, 2:])
 
         X = np.cross(homog(ep[i]), homog(ep[j]))
         finite = np.abs(X[:, 2]) > 1e-9 * np.maximum(np.abs(X[:, :2]).max(axis=1), 1.0)
         X = X[:, :2] / np.where(finite, X[:, 2], 1.0)[:, None]
         lim = cfg.junction_corner_frac * min_side
-        near = to_corner
-        keep = finite & (near(ep[i]) < lim) & (near(ep[j]) < lim)
+        ends = (corner_end(ep[i]), corner_end(ep[j]))
+        keep = finite & (np.linalg.norm(ends[0] - X, axis=1) < lim) & (np.linalg.norm(ends[1] - X, axis=1) < lim)
         if cfg.junction_border_px > 0:
             b = cfg.junction_border_px
-
-            def corner_end(e):
-                near0 = np.linalg.norm(e[:, :2] - X, axis=1) <= np.linalg.norm(e[:, 2:] - X, axis=1)
-                return np.where(near0[:, None], e[:, :2], e[:, 2:])
-
-            for e in (corner_end(ep[i]), corner_end(ep[j])):
+            for e in ends:
                 keep &= (e[:, 0] > b) & (e[:, 0] < size[0] - 1 - b) & (e[:, 1] > b) & (e[:, 1] < size[1] - 1 - b)
         i, j = i[keep], j[keep]
     if cfg.junction_normals and len(i):

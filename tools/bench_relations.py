@@ -263,7 +263,7 @@ def main() -> None:
         for r in bench_scene(cap, root / "runs", sources, args.width, args.tol, cfg, cache, graph_cfg,
                              bool(sets.get("parallel", RelationsConfig().parallel))):
             results.append(r)
-            cells = [f"{n[:5] if n != 'floor_verified' else 'fl.ver'} n={r[n]['n']} P={r[n]['precision']} R={r[n]['recall']}/{r[n]['n_gt']}"
+            cells = [f"{_short(n)} n={r[n]['n']} P={r[n]['precision']} R={r[n]['recall']}/{r[n]['n_gt']}"
                      for n in (*RELATION_NAMES, "floor_verified")]
             print(f"{name:8s} {r['source']:15s} tracks={r['tracks']} mapped={r['tracks_mapped']} | "
                   + " | ".join(cells) + f" | {r['relations_s']}s")
@@ -275,12 +275,17 @@ def main() -> None:
     pooled = pool(results) if len(results) > len(sources) else {}
     for source, by_type in pooled.items():
         print(f"{'pooled':8s} {source:15s} " + " | ".join(
-            f"{n[:5] if n != 'floor_verified' else 'fl.ver'} P={v['precision']} [{v['low']}, {v['high']}] "
+            f"{_short(n)} P={v['precision']} [{v['low']}, {v['high']}] "
             f"({v['n_true']}/{v['n_judged']}) R={v['recall']}"
             for n, v in by_type.items()))
     if args.json:
         with open(args.json, "w") as fh:
             json.dump({"rows": results, "pooled": pooled} if pooled else results, fh, indent=1)
+
+
+def _short(name: str) -> str:
+    """Returns a relation type's (or 'floor_verified''s) column label in the printed table."""
+    return "fl.ver" if name == "floor_verified" else name[:5]
 
 
 def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
