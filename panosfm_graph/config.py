@@ -192,6 +192,16 @@ class RelationsConfig:
     # 0.58/0.46/0.50 % (living 1 60 -> 100 % registered), swaying 1.03/0.88/1.16 -> 0.99/0.64/1.15 %. (An earlier
     # pipeline, 2026-11: worse end to end, 10.7/1.2/1.2 -> 11.1/1.2/3.8 %.)
     junction_min_support: int = 2
+    # Option (False: the paper): an orthogonal/parallel pair whose face would run from one of its lines to the side
+    # opposite the one that line's junctions show (relations.face_sides, junction_sided) is dropped. Measured
+    # 2026-12-04 (tools/bench_relations.py --seeds 3, pooled over 9 captures): detected precision orthogonal oracle
+    # .867 -> .898, orientation map .729 -> .766, model .863 -> .888 (recall .45/.46/.27 -> .44/.45/.27), parallel
+    # .841/.704/.797 -> .941/.777/.818; kept by the pipeline, orthogonal .874/.775/.880 -> .907/.800/.897 (recall
+    # .39/.43/.22 -> .40/.43/.24), floor .52/.27 -> .65/.31. End to end (tools/bench.py --seeds 5, medians living /
+    # bedroom / office) selection 0.45/0.46/0.44 -> 0.49/0.45/0.42 %, kept back 0.58/0.46/0.50 % either way but
+    # living 1 100 -> 60 % registered (three true sofa-arm-top pairs, the vertical link of 114 frames, dropped
+    # through a false junction), swaying 0.99/0.64/1.15 -> 1.53/0.92/1.21 % (living 4 1.2 -> 6.1 %): off
+    junction_sides: bool = False
     # ... and their ends at the corner must lie more than this inside the image (0: anywhere): the frame's edge
     # cuts lines, it makes no corner. tools/bench_relations.py --no-solve: junction precision, oracle
     # .95/.95/.94 -> .95/1.0/.94, orientation map .83/.92/.83 -> .86/.96/.83, model .92/.92/.86 -> .96/1.0/.86,

@@ -52,6 +52,15 @@ floor candidate from whose end a vertical hangs down (``floor_hanging_frac``,
 :func:`hanging_verticals`: a cabinet's or bed's top) is not floor. Measured:
 README (status) and ``RelationsConfig``.
 
+Also beyond the paper (``junction_sides``): an L-junction tells on which
+side of each of its lines the face lies (the inside of the L), and that side
+is a direction of the Manhattan frame (:func:`face_sides`), the same in every
+frame. A bookshelf's front edge bounds the front towards its top edge; a
+quad from that edge to a wall line on its other side, where the wall behind
+shows the same normal, is dropped: its line has faces of that orientation
+only on the side the junctions show (:func:`junction_sided`). A line no
+junction touches keeps all its pairs. Measured: ``RelationsConfig``.
+
 Known limits (measured on real pipeline output, ``tools/bench_relations.py``):
 normals cannot tell two parallel planes apart (a bookshelf's front and the
 wall behind it, a desk top and the floor seen past it), so orthogonal /
@@ -641,6 +650,59 @@ def _junction_pairs(pre, normals, i, j, labels, ep, min_side, cfg, dirs, size):
     return i, j
 
 
+def face_sides(pre: Preprocessed, camera: Camera, seg_i: np.ndarray, seg_j: np.ndarray, axis: np.ndarray,
+               labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Returns (s_i, s_j) (P,) in {-1, 0, +1}: which way the face on plane ``axis`` runs from each segment to the other.
+
+    Our addition to paper §3.2. Segment i (Manhattan label ``a``) on the plane
+    ``x_axis = k`` bounds a face that extends from it along the plane's other
+    direction ``3 - a - axis``; its sign, in the Manhattan frame (so the same
+    in every frame), is the sign of that coordinate of the way from i's
+    mid-point to j's on the plane, found from the viewing rays alone (the
+    unknown ``k`` has the sign of the rays' ``axis`` coordinate). 0 where a
+    ray runs nearly inside the plane (the plane seen edge-on).
+    """
+    if len(seg_i) == 0:
+        z = np.zeros(0, np.int64)
+        return z, z.copy()
+    Kinv = np.linalg.inv(camera.K)
+    frame = pre.segments.frame.astype(np.int64)
+    R = pre.R_wc.astype(np.float64)
+    dirs = pre.manhattan.directions
+
+    def rays(s):  # (P, 3) unit viewing rays of the mid-points in Manhattan coordinates
+        x = np.column_stack([pre.segments.midpoints[s], np.ones(len(s))]) @ Kinv.T
+        r = np.einsum("pij,pj->pi", R[frame[s]], x) @ dirs.T
+        return r / np.linalg.norm(r, axis=1, keepdims=True)
+
+    n = np.arange(len(seg_i))
+    rx, ry = rays(seg_i), rays(seg_j)
+    c = np.asarray(axis, np.int64)
+    xc, yc = rx[n, c], ry[n, c]
+    edge_on = (np.abs(xc) < 0.05) | (np.abs(yc) < 0.05) | (np.sign(xc) != np.sign(yc))
+    xc, yc = np.where(edge_on, 1.0, xc), np.where(edge_on, 1.0, yc)
+    out = []
+    for u, v, uc, vc, lab in ((rx, ry, xc, yc, labels[seg_i]), (ry, rx, yc, xc, labels[seg_j])):
+        along = 3 - lab - c
+        out.append(np.where(edge_on, 0, np.sign(uc) * np.sign(v[n, along] / vc - u[n, along] / uc)).astype(np.int64))
+    return out[0], out[1]
+
+
+def junction_sided(track_of: np.ndarray, n_tracks: int, seg_i: np.ndarray, seg_j: np.ndarray, axis: np.ndarray,
+                   s_i: np.ndarray, s_j: np.ndarray) -> np.ndarray:
+    """Returns (T, 3, 2) bool: ``[t, k, 0/1]`` whether a junction puts a face of plane normal ``k`` on the -/+ side of track t.
+
+    The inside of an L-junction (paper §3.2's junction coplanarity, with our
+    corner and normal checks) is a face the two lines bound: each line's face
+    on that plane lies towards the other line (:func:`face_sides`).
+    """
+    known = np.zeros((n_tracks, 3, 2), bool)
+    for s, side in ((seg_i, s_i), (seg_j, s_j)):
+        m = side != 0
+        known[track_of[s[m]], axis[m], (side[m] > 0).astype(np.int64)] = True
+    return known
+
+
 def detect_relations(
     pre: Preprocessed, tracks: Tracks, normals: NormalMaps, camera: Camera, config: RelationsConfig
 ) -> Relations:
@@ -683,13 +745,12 @@ def detect_relations(
         pts = np.concatenate([seg.midpoints[tracked], ep[tracked, :2], ep[tracked, 2:]])
         owner = np.tile(tracked, 3)
         pairs = _frame_pairs(pts, np.tile(frame[tracked], 3), owner, config.max_pair_dist_frac * min_side, span)
-        kind, i, j, axis = _quad_relations(pre, normals, pairs[:, 0], pairs[:, 1], labels, config, dirs)
-        add(kind, i, j, axis)
+        quad = _quad_relations(pre, normals, pairs[:, 0], pairs[:, 1], labels, config, dirs)
         if contacts is not None:
             cannot.append(contradicted_pairs(contacts, ep, pairs[:, 0], pairs[:, 1], labels, frame, track_of,
                                              contact_tol, config.t_junction_frac * min_side,
                                              config.floor_contact_min_frames))
-        log.debug("quad tests: %d candidate pairs, %d accepted", len(pairs), len(i))
+        log.debug("quad tests: %d candidate pairs, %d accepted", len(pairs), len(quad[1]))
 
     if config.junction:
         pts = np.concatenate([ep[tracked, :2], ep[tracked, 2:]])
@@ -700,6 +761,28 @@ def detect_relations(
         i, j = _junction_pairs(pre, normals, i[diff], j[diff], labels, ep, min_side, config, dirs,
                                (camera.width, camera.height))
         add(JUNCTION, i, j, 3 - labels[i] - labels[j])
+        junctions = (i, j, 3 - labels[i] - labels[j])
+
+    if config.orthogonal or config.parallel:
+        kind, i, j, axis = quad
+        if config.junction_sides and config.junction and len(i) and len(junctions[0]):
+            # a face runs from a line only to the sides its L-junctions show: a bookshelf's front edge bounds the
+            # front towards its top edge, and the wall beyond it (same normal, further back) is another plane
+            ji, jj, jk = junctions
+            a, b = np.minimum(track_of[ji], track_of[jj]), np.maximum(track_of[ji], track_of[jj])
+            _, inv, cnt = np.unique(np.column_stack([a, b, jk]), axis=0, return_inverse=True, return_counts=True)
+            strong = cnt[inv.ravel()] >= config.junction_min_support
+            ji, jj, jk = ji[strong], jj[strong], jk[strong]
+            known = junction_sided(track_of, tracks.n, ji, jj, jk, *face_sides(pre, camera, ji, jj, jk, labels))
+            contradicted = np.zeros(len(i), bool)
+            for s, side in zip((i, j), face_sides(pre, camera, i, j, axis, labels)):
+                t = track_of[s]
+                here = known[t, axis, (side > 0).astype(np.int64)]
+                there = known[t, axis, (side < 0).astype(np.int64)]
+                contradicted |= (side != 0) & there & ~here
+            log.debug("junction sides: %d of %d quad pairs contradicted", int(contradicted.sum()), len(i))
+            kind, i, j, axis = kind[~contradicted], i[~contradicted], j[~contradicted], axis[~contradicted]
+        add(kind, i, j, axis)
 
     if config.floor:
         hz = tracked[labels[tracked] != 2]

@@ -447,3 +447,52 @@ def test_floor_contacts_vanishing_points_follow_the_rotations():
         for d in range(3):
             want = CAM.K @ R[f].T @ dirs[d]
             np.testing.assert_allclose(np.cross(fc.vp[f, d], want), 0, atol=1e-9)
+
+
+def test_a_face_runs_only_to_the_side_its_l_junctions_show():
+    """Beyond the paper (junction_sides): a bookshelf's front edge bounds the front, not the wall beyond it."""
+    segs = [
+        (50, 25, 50, 75),  # 0: a vertical front edge (label 2) on the y-facing wall's normals
+        (20, 25, 50, 25),  # 1: the front's top edge, an L with 0 whose inside lies to the left
+        (58, 15, 95, 15),  # 2: a wall line to the right of 0: same normal, but another plane
+        (20, 70, 44, 70),  # 3: a line to the left of 0, on the side of the front
+    ]
+    labels = [2, 0, 0, 0]
+    pre, tracks, nm = _frame(segs, labels, n_frames=2)
+    off = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig()), ORTHOGONAL)
+    assert {(0, 2, 1), (0, 3, 1)} <= off
+    assert (0, 1, 1) in _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig()), JUNCTION)
+    on = _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(junction_sides=True)), ORTHOGONAL)
+    assert (0, 2, 1) not in on and (0, 3, 1) in on
+    assert on == off - {(0, 2, 1)}
+    # without the junction (seen in one frame only, below junction_min_support) nothing says which side
+    pre, tracks, nm = _frame(segs, labels, n_frames=1)
+    assert (0, 2, 1) in _rows(detect_relations(pre, tracks, nm, CAM, RelationsConfig(junction_sides=True)), ORTHOGONAL)
+
+
+def test_face_sides_are_the_same_in_every_frame():
+    """face_sides gives the way along a Manhattan axis, not in the image: a turned camera sees the same sides."""
+    from panosfm_graph.relations import face_sides
+
+    K = CAM.K
+    # wall y = 3 (normal axis 1); a vertical line at x = 0 and points on the wall left / right of it
+    P = np.array([[0.0, 3.0, 0.2], [-0.8, 3.0, 0.4], [0.9, 3.0, -0.3]])
+    eps = []
+    Rs = []
+    for yaw in (0.0, 0.3, -0.25):
+        Rz = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+        R = Rz @ R_WC
+        x = (P @ R) @ K.T  # camera = R^T world
+        x = x[:, :2] / x[:, 2:]
+        eps.append(np.column_stack([x - [0, 3], x + [0, 3]]))  # short vertical segments around the projections
+        Rs.append(R)
+    ep = np.concatenate(eps).astype(np.float32)
+    frame = np.repeat(np.arange(3, dtype=np.int32), 3)
+    seg = Segments(ep, frame, np.arange(0, 10, 3, dtype=np.int64), np.zeros((9, 3), np.uint8))
+    labels = np.tile(np.array([2, 0, 0]), 3)
+    pre = Preprocessed(seg, ManhattanFrame(np.eye(3)), labels.astype(np.int8), np.array(Rs), np.array(Rs))
+    i = np.array([0, 0, 3, 3, 6, 6])
+    j = np.array([1, 2, 4, 5, 7, 8])
+    s_i, s_j = face_sides(pre, CAM, i, j, np.ones(6, np.int64), labels)
+    assert s_i.tolist() == [-1, 1] * 3  # from the vertical along x: to the left point -, to the right +
+    assert s_j.tolist() == [-1, 1] * 3  # from the x lines along z: the vertical's mid-point is lower (left) / higher
