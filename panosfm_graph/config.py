@@ -199,8 +199,8 @@ class RelationsConfig:
     # .841/.704/.797 -> .941/.777/.818; kept by the pipeline, orthogonal .874/.775/.880 -> .907/.800/.897 (recall
     # .39/.43/.22 -> .40/.43/.24), floor .52/.27 -> .65/.31. End to end (tools/bench.py --seeds 5, medians living /
     # bedroom / office) selection 0.45/0.46/0.44 -> 0.49/0.45/0.42 %, kept back 0.58/0.46/0.50 % either way but
-    # living 1 100 -> 60 % registered (three true sofa-arm-top pairs, the vertical link of 114 frames, dropped
-    # through a false junction), swaying 0.99/0.64/1.15 -> 1.53/0.92/1.21 % (living 4 1.2 -> 6.1 %): off
+    # living 1 100 -> 60 % registered (three true sofa-arm-top pairs, the vertical link of 114 frames, vetoed
+    # by doubtful junctions), swaying 0.99/0.64/1.15 -> 1.53/0.92/1.21 % (living 4 1.2 -> 6.1 %): off
     junction_sides: bool = False
     # ... and their ends at the corner must lie more than this inside the image (0: anywhere): the frame's edge
     # cuts lines, it makes no corner. tools/bench_relations.py --no-solve: junction precision, oracle
