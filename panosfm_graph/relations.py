@@ -669,9 +669,10 @@ def face_sides(pre: Preprocessed, camera: Camera, seg_i: np.ndarray, seg_j: np.n
     frame = pre.segments.frame.astype(np.int64)
     R = pre.R_wc.astype(np.float64)
     dirs = pre.manhattan.directions
+    mid = pre.segments.midpoints
 
     def rays(s):  # (P, 3) unit viewing rays of the mid-points in Manhattan coordinates
-        x = np.column_stack([pre.segments.midpoints[s], np.ones(len(s))]) @ Kinv.T
+        x = np.column_stack([mid[s], np.ones(len(s))]) @ Kinv.T
         r = np.einsum("pij,pj->pi", R[frame[s]], x) @ dirs.T
         return r / np.linalg.norm(r, axis=1, keepdims=True)
 
