@@ -62,12 +62,34 @@ def angle_between_deg(a: np.ndarray, b: np.ndarray, unsigned: bool = False) -> n
 
 
 def pixel_rays(K: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Returns (N, 3) unit camera-frame rays through pixels ``pts`` (N, 2)."""
+    """Returns (..., 3) unit camera-frame rays through pixels ``pts`` (..., 2)."""
     pts = np.asarray(pts, dtype=np.float64)
-    x = (pts[:, 0] - K[0, 2]) / K[0, 0]
-    y = (pts[:, 1] - K[1, 2]) / K[1, 1]
-    d = np.stack([x, y, np.ones_like(x)], axis=1)
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
+    x = (pts[..., 0] - K[0, 2]) / K[0, 0]
+    y = (pts[..., 1] - K[1, 2]) / K[1, 1]
+    d = np.stack([x, y, np.ones_like(x)], axis=-1)
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def world_rays(K: np.ndarray, R_wc: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Returns (N, 3) unit WORLD viewing rays ``R_wc K^-1 x~`` through pixels ``pts`` (N, 2) of cameras ``R_wc`` (N, 3, 3)."""
+    return np.einsum("nij,nj->ni", R_wc, pixel_rays(K, pts))
+
+
+def closest_on_lines(points: np.ndarray, directions: np.ndarray, origins: np.ndarray, rays: np.ndarray,
+                     min_sin2: float = 1e-9) -> np.ndarray:
+    """Returns (N,) the parameters s of the points ``points + s directions`` of 3D lines nearest to rays.
+
+    Row n: the line through ``points[n]`` along the unit ``directions[n]`` and the ray from
+    ``origins[n]`` along the unit ``rays[n]``; NaN where the ray is parallel to its line (squared
+    sine of their angle at most ``min_sin2``).
+    """
+    w0 = points - origins
+    b = np.sum(directions * rays, axis=1)
+    d = np.sum(directions * w0, axis=1)
+    e = np.sum(rays * w0, axis=1)
+    den = 1.0 - b ** 2
+    ok = den > min_sin2
+    return np.where(ok, (b * e - d) / np.where(ok, den, 1.0), np.nan)
 
 
 def interpretation_normals(K: np.ndarray, endpoints: np.ndarray) -> np.ndarray:

@@ -95,7 +95,7 @@ import factors
 
 from .config import SPIN_STYLES, GraphConfig, LinearConfig
 from .data import FLOOR, JUNCTION, ORTHOGONAL, PARALLEL, Camera, LineModel, Preprocessed, Relations, Solution, Tracks
-from .geometry import turned_degrees
+from .geometry import closest_on_lines, turned_degrees, world_rays
 from .linear import solve_linear
 
 log = logging.getLogger("panosfm.graph")
@@ -416,19 +416,10 @@ def line_extents(taylor: np.ndarray, direction: np.ndarray, endpoints: np.ndarra
     Rows are observations: ``taylor``/``direction`` (N, 3), ``endpoints`` (N, 4) pixels,
     ``R_wc`` (N, 3, 3), ``centers`` (N, 3). NaN where a ray is parallel to its line.
     """
-    Kinv = np.linalg.inv(K)
     out = np.empty((len(endpoints), 2))
     for e in range(2):
-        uv1 = np.c_[endpoints[:, 2 * e:2 * e + 2], np.ones(len(endpoints))]
-        D = np.einsum("nij,nj->ni", R_wc, uv1 @ Kinv.T)
-        D /= np.linalg.norm(D, axis=1, keepdims=True)
-        w0 = taylor - centers
-        b = np.sum(direction * D, axis=1)
-        d = np.sum(direction * w0, axis=1)
-        ee = np.sum(D * w0, axis=1)
-        den = 1.0 - b**2
-        with np.errstate(divide="ignore", invalid="ignore"):
-            out[:, e] = np.where(den > 1e-6, (b * ee - d) / den, np.nan)
+        D = world_rays(K, R_wc, endpoints[:, 2 * e:2 * e + 2])
+        out[:, e] = closest_on_lines(taylor, direction, centers, D, min_sin2=1e-6)
     return out
 
 

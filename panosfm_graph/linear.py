@@ -115,7 +115,7 @@ from .data import (
     Solution,
     Tracks,
 )
-from .geometry import pixel_rays, turned_degrees
+from .geometry import closest_on_lines, turned_degrees, world_rays
 
 log = logging.getLogger("panosfm.linear")
 
@@ -133,8 +133,7 @@ def observation_rays(pre: Preprocessed, camera: Camera, segments: np.ndarray | N
     idx = np.arange(seg.n) if segments is None else np.asarray(segments)
     ep = seg.endpoints[idx].astype(np.float64)
     pts = {"mid": 0.5 * (ep[:, :2] + ep[:, 2:]), "start": ep[:, :2], "end": ep[:, 2:]}[which]
-    d_cam = pixel_rays(camera.K, pts)
-    return np.einsum("nij,nj->ni", pre.R_wc[seg.frame[idx]], d_cam)
+    return world_rays(camera.K, pre.R_wc[seg.frame[idx]], pts)
 
 
 def _valid_relations(relations: Relations, axis: np.ndarray, config: LinearConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -865,13 +864,7 @@ def _extents(pre: Preprocessed, camera: Camera, seg_ids: np.ndarray, seg_track: 
     p = taylor[seg_track]
     u = direction[seg_track]
     for which in ("start", "end"):
-        r = observation_rays(pre, camera, seg_ids, which)
-        w0 = p - seg_centers
-        b = np.sum(u * r, axis=1)
-        d = np.sum(u * w0, axis=1)
-        e = np.sum(r * w0, axis=1)
-        den = 1.0 - b ** 2
-        s = np.where(den > 1e-9, (b * e - d) / np.maximum(den, 1e-9), np.nan)
+        s = closest_on_lines(p, u, seg_centers, observation_rays(pre, camera, seg_ids, which))
         good = np.isfinite(s)
         np.minimum.at(lo, seg_track[good], s[good])
         np.maximum.at(hi, seg_track[good], s[good])

@@ -85,6 +85,7 @@ from scipy.spatial import cKDTree
 
 from .config import RelationsConfig
 from .data import FLOOR, JUNCTION, ORTHOGONAL, PARALLEL, Camera, NormalMaps, Preprocessed, Relations, Tracks
+from .geometry import pixel_rays, world_rays
 
 log = logging.getLogger("panosfm.relations")
 
@@ -378,7 +379,7 @@ def floor_contacts(pre: Preprocessed, normals: NormalMaps, camera: Camera, mask:
     """
     seg = pre.segments
     N = seg.n
-    K, Kinv = camera.K, np.linalg.inv(camera.K)
+    K = camera.K
     up = pre.manhattan.directions[2] * (1.0 if pre.manhattan.directions[2, 2] >= 0 else -1.0)
     R = pre.R_wc.astype(np.float64)
     vp = np.einsum("ij,fkj,dk->fdi", K, R, pre.manhattan.directions)  # K R_wc^T d
@@ -396,8 +397,7 @@ def floor_contacts(pre: Preprocessed, normals: NormalMaps, camera: Camera, mask:
     up_c = np.einsum("fji,j->fi", R, up)[f]  # (n, 3) up in each segment's camera frame
 
     def height(x):  # (n, ..., 2) image points -> sine of their viewing ray's elevation
-        r = np.concatenate([x, np.ones(x.shape[:-1] + (1,))], axis=-1) @ Kinv.T
-        return np.einsum("n...c,nc->n...", r, up_c) / np.linalg.norm(r, axis=-1)
+        return np.einsum("n...c,nc->n...", pixel_rays(K, x), up_c)
 
     def on_floor(x):  # (n, ..., 2) image points -> bool: inside the image and on the floor region
         return on_mask(mask, f, x * scale)
@@ -665,15 +665,13 @@ def face_sides(pre: Preprocessed, camera: Camera, seg_i: np.ndarray, seg_j: np.n
     if len(seg_i) == 0:
         z = np.zeros(0, np.int64)
         return z, z.copy()
-    Kinv = np.linalg.inv(camera.K)
-    frame = pre.segments.frame.astype(np.int64)
     R = pre.R_wc.astype(np.float64)
     dirs = pre.manhattan.directions
     mid = pre.segments.midpoints
+    frame = pre.segments.frame
 
     def rays(s):  # (P, 3) unit viewing rays of the mid-points in Manhattan coordinates
-        x = np.column_stack([mid[s], np.ones(len(s))]) @ Kinv.T
-        r = np.einsum("pij,pj->pi", R[frame[s]], x) @ dirs.T
+        r = world_rays(camera.K, R[frame[s]], mid[s]) @ dirs.T
         return r / np.linalg.norm(r, axis=1, keepdims=True)
 
     n = np.arange(len(seg_i))
