@@ -1,0 +1,203 @@
+"""Tracking benchmark (supplement §3): how fragmented the tracks are, and what perfect joining would give end to end.
+
+    python tools/bench_tracking.py --scenes living,bedroom,office --out /tmp/bench_tracking
+    python tools/bench_tracking.py --scenes office --sway 0.05 --seeds 2 --out /tmp/bench_tracking
+
+For each synthetic capture (300 frames 960x540 by default, written into ``OUT/captures`` unless there):
+
+* fragmentation: the pipeline's tracks are mapped to ground-truth 3D lines
+  (:func:`panosfm_graph.relations.track_gt_edges`; colinear GT edges are one
+  line), and the table gives the tracks, the GT lines they cover, tracks per
+  covered line and the fragment pairs (two tracks of one line that share no
+  frame);
+* an oracle ablation, end to end: the whole pipeline (true camera height, as
+  ``tools/bench.py``) runs with its own tracks (``default``), with every
+  fragment pair of one GT line joined (``oracle-join``: what a perfect
+  fragment joiner would give, the spin's two ends included) and with all
+  tracks of one GT line joined (``oracle-join-all``: also two pieces of one
+  line seen side by side, the longest segment per frame kept), each scored by
+  :func:`panosfm_graph.evaluate.evaluate_reconstruction`.
+
+The oracle modes replace the track stage's output inside this process (no
+cache: each run is from scratch). Prints a table and writes ``OUT/bench_tracking.json``.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import panosfm_graph.pipeline as pipeline
+from panosfm_graph.capture import load_capture
+from panosfm_graph.config import Config
+from panosfm_graph.data import Tracks
+from panosfm_graph.evaluate import evaluate_reconstruction
+from panosfm_graph.export import to_jsonable
+from panosfm_graph.relations import track_gt_edges
+from panosfm_graph.synth import synthesize
+from panosfm_graph.synth.scenes import scene_from_json
+
+MODES = ("default", "oracle-join", "oracle-join-all")
+
+
+def gt_line_of_tracks(capture, pre, tracks, colinear_m: float = 0.01) -> np.ndarray:
+    """Returns (T,) the ground-truth 3D line of each track (-1 unknown); colinear GT edges share one id."""
+    gt = capture.ground_truth
+    scene = scene_from_json(gt.scene)
+    E_room, lab_room = scene.edges(min_length_m=0.05, frame="room")
+    E_world = np.concatenate([scene.to_world(E_room[:, :3]), scene.to_world(E_room[:, 3:])], axis=1)
+    axis_to_room = np.abs(pre.manhattan.directions @ scene.manhattan_directions.T).argmax(axis=1)
+    edge, _ = track_gt_edges(pre, tracks, capture.camera, gt.R_wc, gt.centers, E_world,
+                             np.argsort(axis_to_room)[lab_room])
+    # a line is its axis and its two coordinates across it (colinear edges: the same)
+    mid = 0.5 * (E_room[:, :3] + E_room[:, 3:])
+    across = np.array([[1, 2], [0, 2], [0, 1]])[lab_room]
+    key = np.column_stack([lab_room, np.rint(np.take_along_axis(mid, across, axis=1) / colinear_m)]).astype(np.int64)
+    _, line_of_edge = np.unique(key, axis=0, return_inverse=True)
+    return np.where(edge >= 0, line_of_edge.ravel()[np.maximum(edge, 0)], -1)
+
+
+def _frames_of(tracks: Tracks, frame: np.ndarray) -> list[set]:
+    sets = [set() for _ in range(tracks.n)]
+    to = np.asarray(tracks.track_of)
+    for s in np.flatnonzero(to >= 0):
+        sets[to[s]].add(int(frame[s]))
+    return sets
+
+
+def join_by_ground_truth(tracks: Tracks, frame: np.ndarray, length: np.ndarray, line: np.ndarray,
+                         disjoint: bool) -> Tracks:
+    """Returns ``tracks`` with the tracks of one GT ``line`` joined: with ``disjoint`` only tracks that share no
+    frame (longest first, greedily), otherwise all (the longest segment per frame kept)."""
+    T = tracks.n
+    root = np.arange(T)
+    frames = _frames_of(tracks, frame)
+    for ln in np.unique(line[line >= 0]):
+        members = np.flatnonzero(line == ln)
+        members = members[np.argsort([-len(frames[t]) for t in members], kind="stable")]
+        groups: list[tuple[set, int]] = []
+        for t in members:
+            for seen, r in groups:
+                if not disjoint or not (seen & frames[t]):
+                    seen |= frames[t]
+                    root[t] = r
+                    break
+            else:
+                groups.append((set(frames[t]), t))
+    ids, new = np.unique(root, return_inverse=True)
+    to = np.asarray(tracks.track_of)
+    track_of = np.where(to >= 0, new[np.maximum(to, 0)], -1).astype(np.int32)
+    s = np.flatnonzero(track_of >= 0)
+    o = np.lexsort((-length[s], frame[s], track_of[s]))
+    dup = np.concatenate([[False], (track_of[s][o][1:] == track_of[s][o][:-1]) & (frame[s][o][1:] == frame[s][o][:-1])])
+    track_of[s[o][dup]] = -1
+    return Tracks(track_of=track_of, axis=tracks.axis[ids].astype(np.int8))
+
+
+def fragmentation(tracks: Tracks, frame: np.ndarray, line: np.ndarray) -> dict:
+    """Returns the fragmentation figures of ``tracks`` against their GT lines."""
+    frames = _frames_of(tracks, frame)
+    mapped = np.flatnonzero(line >= 0)
+    lines, per_line = np.unique(line[mapped], return_counts=True)
+    pairs = 0
+    for ln in lines[per_line > 1]:
+        m = np.flatnonzero(line == ln)
+        pairs += sum(1 for i in range(len(m)) for j in range(i + 1, len(m)) if not frames[m[i]] & frames[m[j]])
+    n_obs = np.array([len(f) for f in frames])
+    return {"tracks": tracks.n, "tracks_mapped": int(len(mapped)), "gt_lines": int(len(lines)),
+            "tracks_per_line": round(float(per_line.mean()), 2) if len(lines) else None,
+            "lines_in_pieces": int((per_line > 1).sum()), "fragment_pairs": int(pairs),
+            "frames_per_track_median": float(np.median(n_obs)) if len(n_obs) else None}
+
+
+@contextlib.contextmanager
+def tracks_replaced(mode: str, found: dict):
+    """Within the block the pipeline's track stage returns the ``mode``'s tracks (and records fragmentation)."""
+    original = pipeline._track
+
+    def track(capture, pre, config):
+        tracks = original(capture, pre, config)
+        seg = pre.segments
+        frame = seg.frame.astype(np.int64)
+        line = gt_line_of_tracks(capture, pre, tracks)
+        found["before"] = fragmentation(tracks, frame, line)
+        if mode != "default":
+            length = np.linalg.norm(seg.endpoints[:, 2:].astype(np.float64) - seg.endpoints[:, :2], axis=1)
+            tracks = join_by_ground_truth(tracks, frame, length, line, disjoint=(mode == "oracle-join"))
+            found["after"] = fragmentation(tracks, frame, gt_line_of_tracks(capture, pre, tracks))
+        return tracks
+
+    pipeline._track = track
+    try:
+        yield
+    finally:
+        pipeline._track = original
+
+
+def run_mode(cap: Path, out: Path, mode: str) -> dict:
+    """Returns the metrics of one whole-pipeline run of ``mode`` on capture ``cap`` (true camera height)."""
+    height = load_capture(cap).ground_truth.camera_height_m
+    cfg = Config()
+    cfg = dataclasses.replace(cfg, linear=dataclasses.replace(cfg.linear, camera_height_m=height))
+    found: dict = {}
+    t0 = time.perf_counter()
+    with tracks_replaced(mode, found):
+        pipeline.run_pipeline(cap, out, cfg, rerun=False, views=False)
+    m = evaluate_reconstruction(cap, out)
+    return {"seconds": round(time.perf_counter() - t0, 1), **found,
+            "registered": m["registered_ratio"], "centre_median": m["center_error_rel"]["median"],
+            "centre_mean": m["center_error_rel"]["mean"], "corner_px": m["reprojection_px"].get("mean"),
+            "lines_median_m": m["lines"]["distance_m"]["median"], "lines_within": m["lines"]["within_0.05m_share"]}
+
+
+def _pct(v) -> str:
+    return "n/a" if v is None else f"{100 * v:.2f}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--scenes", default="living,bedroom,office")
+    p.add_argument("--frames", type=int, default=300)
+    p.add_argument("--size", default="960x540")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seeds", type=int, default=1, help="captures per scene (seeds SEED + k + 10 j, as tools/bench.py)")
+    p.add_argument("--sway", type=float, default=0.0, metavar="M", help="spins that depart from a circle (m RMS)")
+    p.add_argument("--modes", default=",".join(MODES))
+    p.add_argument("--out", default="/tmp/bench_tracking")
+    a = p.parse_args(argv)
+    size = tuple(int(v) for v in a.size.lower().split("x"))
+    modes = a.modes.split(",")
+    if not set(modes) <= set(MODES):
+        p.error(f"--modes: one or more of {', '.join(MODES)}")
+    out = Path(a.out)
+    scenes = a.scenes.split(",")
+    rows = []
+    for j in range(max(a.seeds, 1)):
+        for k, scene in enumerate(scenes):
+            seed = a.seed + k + 10 * j
+            cap = out / "captures" / (f"{scene}-{a.frames}-{size[0]}x{size[1]}-s{seed}"
+                                      + (f"-sway{a.sway:g}" if a.sway > 0 else ""))
+            if not (cap / "imu.csv").exists():
+                synthesize(cap, scene=scene, n_frames=a.frames, size=size, seed=seed, sway_m=a.sway)
+            for mode in modes:
+                r = {"capture": cap.name, "mode": mode, **run_mode(cap, out / "runs" / cap.name / mode, mode)}
+                rows.append(r)
+                frag = r.get("after", r["before"])
+                print(f"{cap.name:38s} {mode:16s} tracks {frag['tracks']:4d} ({frag['tracks_per_line']} per line, "
+                      f"{frag['fragment_pairs']} fragment pairs) | registered {_pct(r['registered'])} % | centre "
+                      f"median {_pct(r['centre_median'])} % mean {_pct(r['centre_mean'])} % | corners "
+                      f"{r['corner_px']:.2f} px | lines {r['lines_median_m']:.3f} m, "
+                      f"{_pct(r['lines_within'])} % within 5 cm | {r['seconds']} s", flush=True)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "bench_tracking.json").write_text(json.dumps(to_jsonable({"sway_m": a.sway, "rows": rows}), indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
