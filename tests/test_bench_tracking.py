@@ -51,3 +51,15 @@ def test_join_all_keeps_the_longest_segment_of_a_frame():
     assert (to[7:9] == -1).all() and to[9] == line7  # track 2: frames 2, 3 dropped, frame 4 joined
     on = np.flatnonzero(to == line7)
     assert len(np.unique(frame[on])) == len(on)  # one segment per frame
+
+
+def test_near_join_chains_fragments_in_time_only():
+    tracks, frame, length, line = _tracks()
+    # track 1 (frames 5-7) starts 2 frames after track 2 (2-4) ends, 2 after track 0 (0-3) ... but 0 and 2 overlap:
+    # in time order 0 (0-3), 2 (2-4: overlaps, starts a chain of its own), 1 (5-7: 1 frame after 2) -> 2 + 1
+    joined = join_by_ground_truth(tracks, frame, length, line, disjoint=True, near_frames=1)
+    to = joined.track_of
+    assert joined.n == 4 and to[4] == to[7] != to[0]  # track 1's first segment joins track 2's
+    # a gap of 2 frames is beyond near_frames=0... and 1..3 joins nothing further here
+    apart = join_by_ground_truth(tracks, frame, length, line, disjoint=True, near_frames=0)
+    assert apart.n == 5

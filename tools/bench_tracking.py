@@ -13,13 +13,15 @@ For each synthetic capture (300 frames 960x540 by default, written into ``OUT/ca
 * an oracle ablation, end to end: the whole pipeline (true camera height, as
   ``tools/bench.py``) runs with its own tracks (``default``), with every
   fragment pair of one GT line joined (``oracle-join``: what a perfect
-  fragment joiner would give, the spin's two ends included) and with all
+  fragment joiner would give, the spin's two ends included), with only the
+  fragments that follow each other within 3 frames joined (``oracle-join-near``:
+  what ``tracking.merge_fragments`` aims at) and with all
   tracks of one GT line joined (``oracle-join-all``: also two pieces of one
   line seen side by side, the longest segment per frame kept), each scored by
   :func:`panosfm_graph.evaluate.evaluate_reconstruction`.
 
 The oracle modes replace the track stage's output inside this process (no
-cache: each run is from scratch). Prints a table and writes ``OUT/bench_tracking.json``.
+cache: each run is from scratch). Prints a line per run and writes ``OUT/bench_tracking.json`` (``--json``).
 """
 from __future__ import annotations
 
@@ -43,7 +45,8 @@ from panosfm_graph.relations import track_gt_edges
 from panosfm_graph.synth import synthesize
 from panosfm_graph.synth.scenes import scene_from_json
 
-MODES = ("default", "oracle-join", "oracle-join-all")
+MODES = ("default", "oracle-join-near", "oracle-join", "oracle-join-all")
+NEAR_FRAMES = 3  # oracle-join-near: fragments at most this many frames apart (tracking.merge_gap_frames)
 
 
 def gt_line_of_tracks(capture, pre, tracks, colinear_m: float = 0.01) -> np.ndarray:
@@ -72,14 +75,22 @@ def _frames_of(tracks: Tracks, frame: np.ndarray) -> list[set]:
 
 
 def join_by_ground_truth(tracks: Tracks, frame: np.ndarray, length: np.ndarray, line: np.ndarray,
-                         disjoint: bool) -> Tracks:
+                         disjoint: bool, near_frames: int | None = None) -> Tracks:
     """Returns ``tracks`` with the tracks of one GT ``line`` joined: with ``disjoint`` only tracks that share no
-    frame (longest first, greedily), otherwise all (the longest segment per frame kept)."""
+    frame (longest first, greedily), otherwise all (the longest segment per frame kept); with ``near_frames``
+    only a track that starts 1..near_frames frames after the joined ones' last frame (a chain in time)."""
     T = tracks.n
     root = np.arange(T)
     frames = _frames_of(tracks, frame)
     for ln in np.unique(line[line >= 0]):
         members = np.flatnonzero(line == ln)
+        if near_frames is not None:  # in time order: each joins the chain it follows closely enough
+            members = members[np.argsort([min(frames[t]) for t in members], kind="stable")]
+            for prev, t in zip(members[:-1], members[1:]):
+                if 1 <= min(frames[t]) - max(frames[root[prev]]) <= near_frames:
+                    root[t] = root[prev]
+                    frames[root[t]] |= frames[t]
+            continue
         members = members[np.argsort([-len(frames[t]) for t in members], kind="stable")]
         groups: list[tuple[set, int]] = []
         for t in members:
@@ -129,7 +140,8 @@ def tracks_replaced(mode: str, found: dict):
         found["before"] = fragmentation(tracks, frame, line)
         if mode != "default":
             length = np.linalg.norm(seg.endpoints[:, 2:].astype(np.float64) - seg.endpoints[:, :2], axis=1)
-            tracks = join_by_ground_truth(tracks, frame, length, line, disjoint=(mode == "oracle-join"))
+            tracks = join_by_ground_truth(tracks, frame, length, line, disjoint=(mode != "oracle-join-all"),
+                                          near_frames=NEAR_FRAMES if mode == "oracle-join-near" else None)
             found["after"] = fragmentation(tracks, frame, gt_line_of_tracks(capture, pre, tracks))
         return tracks
 
@@ -170,6 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sway", type=float, default=0.0, metavar="M", help="spins that depart from a circle (m RMS)")
     p.add_argument("--modes", default=",".join(MODES))
     p.add_argument("--out", default="/tmp/bench_tracking")
+    p.add_argument("--json", help="write the rows here (default OUT/bench_tracking.json)")
     a = p.parse_args(argv)
     size = tuple(int(v) for v in a.size.lower().split("x"))
     modes = a.modes.split(",")
@@ -195,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
                       f"{r['corner_px']:.2f} px | lines {r['lines_median_m']:.3f} m, "
                       f"{_pct(r['lines_within'])} % within 5 cm | {r['seconds']} s", flush=True)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "bench_tracking.json").write_text(json.dumps(to_jsonable({"sway_m": a.sway, "rows": rows}), indent=1))
+    Path(a.json or out / "bench_tracking.json").write_text(json.dumps(to_jsonable({"sway_m": a.sway, "rows": rows}), indent=1))
     return 0
 
 
