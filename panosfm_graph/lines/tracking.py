@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 
 from ..config import Config, TrackingConfig
 from ..data import Segments, Tracks
-from ..geometry import turned_degrees
+from ..geometry import turned_degrees, world_rays
 
 log = logging.getLogger("panosfm.lines")
 
@@ -345,8 +345,7 @@ def interpretation_angle(segments: Segments, seg_ids: np.ndarray, axis: np.ndarr
     segment's own angle is ~1 degree off on a short piece).
     """
     ep = segments.endpoints[seg_ids].astype(np.float64)
-    mid = np.column_stack([0.5 * (ep[:, :2] + ep[:, 2:]), np.ones(len(ep))]) @ np.linalg.inv(K).T
-    ray = np.einsum("nij,nj->ni", R_wc[segments.frame[seg_ids]], mid)
+    ray = world_rays(K, R_wc[segments.frame[seg_ids]], 0.5 * (ep[:, :2] + ep[:, 2:]))
     other = np.array([[1, 2], [0, 2], [0, 1]])[axis]
     n = np.cross(directions[axis], ray)
     return np.arctan2(np.sum(n * directions[other[:, 1]], axis=1), np.sum(n * directions[other[:, 0]], axis=1))
