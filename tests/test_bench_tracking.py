@@ -30,19 +30,21 @@ def test_disjoint_join_takes_fragments_not_pieces_seen_side_by_side():
     assert before["tracks"] == 5 and before["tracks_mapped"] == 4 and before["gt_lines"] == 2
     assert before["tracks_per_line"] == 2.0 and before["lines_in_pieces"] == 1
     assert before["fragment_pairs"] == 2  # 0-1 and 2-1 share no frame; 0-2 share frames 2 and 3
-    joined = join_by_ground_truth(tracks, frame, length, line, disjoint=True)
+    joined, _ = join_by_ground_truth(tracks, frame, length, line, disjoint=True)
     to = joined.track_of
     # the longest of line 7's tracks (0, 4 frames) takes 1 (no common frame); 2 overlaps it and stays apart
     assert to[0] == to[4] != to[7]  # segment 4 is track 1's first (frame 5), 7 is track 2's first (frame 2)
     assert joined.n == 4 and (to >= 0).all()
     assert sorted(joined.axis.tolist()) == [0, 0, 1, 2]
+    _, new = join_by_ground_truth(tracks, frame, length, line, disjoint=True)
+    assert new.tolist() == [0, 0, 1, 2, 3]  # each old track's id among the joined ones
     after = fragmentation(joined, frame, np.array([7, 7, 8, -1]))  # joined ids: 0 (+1), 2, 3, 4
     assert after["fragment_pairs"] == 0
 
 
 def test_join_all_keeps_the_longest_segment_of_a_frame():
     tracks, frame, length, line = _tracks()
-    joined = join_by_ground_truth(tracks, frame, length, line, disjoint=False)
+    joined, _ = join_by_ground_truth(tracks, frame, length, line, disjoint=False)
     assert joined.n == 3
     to = joined.track_of
     line7 = to[0]
@@ -57,9 +59,9 @@ def test_near_join_chains_fragments_in_time_only():
     tracks, frame, length, line = _tracks()
     # track 1 (frames 5-7) starts 2 frames after track 2 (2-4) ends, 2 after track 0 (0-3) ... but 0 and 2 overlap:
     # in time order 0 (0-3), 2 (2-4: overlaps, starts a chain of its own), 1 (5-7: 1 frame after 2) -> 2 + 1
-    joined = join_by_ground_truth(tracks, frame, length, line, disjoint=True, near_frames=1)
+    joined, _ = join_by_ground_truth(tracks, frame, length, line, disjoint=True, near_frames=1)
     to = joined.track_of
     assert joined.n == 4 and to[4] == to[7] != to[0]  # track 1's first segment joins track 2's
     # a gap of 2 frames is beyond near_frames=0... and 1..3 joins nothing further here
-    apart = join_by_ground_truth(tracks, frame, length, line, disjoint=True, near_frames=0)
+    apart, _ = join_by_ground_truth(tracks, frame, length, line, disjoint=True, near_frames=0)
     assert apart.n == 5

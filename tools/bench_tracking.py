@@ -6,7 +6,7 @@
 For each synthetic capture (300 frames 960x540 by default, written into ``OUT/captures`` unless there):
 
 * fragmentation: the pipeline's tracks are mapped to ground-truth 3D lines
-  (:func:`panosfm_graph.relations.track_gt_edges`; colinear GT edges are one
+  (``bench_relations.ground_truth_view``; colinear GT edges are one
   line), and the table gives the tracks, the GT lines they cover, tracks per
   covered line and the fragment pairs (two tracks of one line that share no
   frame);
@@ -41,9 +41,11 @@ from panosfm_graph.config import Config
 from panosfm_graph.data import Tracks
 from panosfm_graph.evaluate import evaluate_reconstruction
 from panosfm_graph.export import to_jsonable
-from panosfm_graph.relations import track_gt_edges
+from panosfm_graph.lines.tracking import join_tracks
 from panosfm_graph.synth import synthesize
-from panosfm_graph.synth.scenes import scene_from_json
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_relations import ground_truth_view  # noqa: E402
 
 MODES = ("default", "oracle-join-near", "oracle-join", "oracle-join-all")
 NEAR_FRAMES = 3  # oracle-join-near: fragments at most this many frames apart (tracking.merge_gap_frames)
@@ -51,19 +53,13 @@ NEAR_FRAMES = 3  # oracle-join-near: fragments at most this many frames apart (t
 
 def gt_line_of_tracks(capture, pre, tracks, colinear_m: float = 0.01) -> np.ndarray:
     """Returns (T,) the ground-truth 3D line of each track (-1 unknown); colinear GT edges share one id."""
-    gt = capture.ground_truth
-    scene = scene_from_json(gt.scene)
-    E_room, lab_room = scene.edges(min_length_m=0.05, frame="room")
-    E_world = np.concatenate([scene.to_world(E_room[:, :3]), scene.to_world(E_room[:, 3:])], axis=1)
-    axis_to_room = np.abs(pre.manhattan.directions @ scene.manhattan_directions.T).argmax(axis=1)
-    edge, _ = track_gt_edges(pre, tracks, capture.camera, gt.R_wc, gt.centers, E_world,
-                             np.argsort(axis_to_room)[lab_room])
+    g = ground_truth_view(capture, pre, tracks)
     # a line is its axis and its two coordinates across it (colinear edges: the same)
-    mid = 0.5 * (E_room[:, :3] + E_room[:, 3:])
-    across = np.array([[1, 2], [0, 2], [0, 1]])[lab_room]
-    key = np.column_stack([lab_room, np.rint(np.take_along_axis(mid, across, axis=1) / colinear_m)]).astype(np.int64)
-    _, line_of_edge = np.unique(key, axis=0, return_inverse=True)
-    return np.where(edge >= 0, line_of_edge.ravel()[np.maximum(edge, 0)], -1)
+    mid = 0.5 * (g.edges_room[:, :3] + g.edges_room[:, 3:])
+    across = np.array([[1, 2], [0, 2], [0, 1]])[g.edge_axis_room]
+    key = np.column_stack([g.edge_axis_room, np.rint(np.take_along_axis(mid, across, axis=1) / colinear_m)])
+    _, line_of_edge = np.unique(key.astype(np.int64), axis=0, return_inverse=True)
+    return np.where(g.track_edge >= 0, line_of_edge.ravel()[np.maximum(g.track_edge, 0)], -1)
 
 
 def _frames_of(tracks: Tracks, frame: np.ndarray) -> list[set]:
@@ -75,10 +71,11 @@ def _frames_of(tracks: Tracks, frame: np.ndarray) -> list[set]:
 
 
 def join_by_ground_truth(tracks: Tracks, frame: np.ndarray, length: np.ndarray, line: np.ndarray,
-                         disjoint: bool, near_frames: int | None = None) -> Tracks:
-    """Returns ``tracks`` with the tracks of one GT ``line`` joined: with ``disjoint`` only tracks that share no
-    frame (longest first, greedily), otherwise all (the longest segment per frame kept); with ``near_frames``
-    only a track that starts 1..near_frames frames after the joined ones' last frame (a chain in time)."""
+                         disjoint: bool, near_frames: int | None = None) -> tuple[Tracks, np.ndarray]:
+    """Returns (``tracks`` with the tracks of one GT ``line`` joined, each old track's new id): with ``disjoint``
+    only tracks that share no frame (longest first, greedily), otherwise all (the longest segment per frame kept,
+    :func:`~panosfm_graph.lines.tracking.join_tracks`); with ``near_frames`` only a track that starts
+    1..near_frames frames after the joined ones' last frame (a chain in time)."""
     T = tracks.n
     root = np.arange(T)
     frames = _frames_of(tracks, frame)
@@ -101,14 +98,8 @@ def join_by_ground_truth(tracks: Tracks, frame: np.ndarray, length: np.ndarray, 
                     break
             else:
                 groups.append((set(frames[t]), t))
-    ids, new = np.unique(root, return_inverse=True)
-    to = np.asarray(tracks.track_of)
-    track_of = np.where(to >= 0, new[np.maximum(to, 0)], -1).astype(np.int32)
-    s = np.flatnonzero(track_of >= 0)
-    o = np.lexsort((-length[s], frame[s], track_of[s]))
-    dup = np.concatenate([[False], (track_of[s][o][1:] == track_of[s][o][:-1]) & (frame[s][o][1:] == frame[s][o][:-1])])
-    track_of[s[o][dup]] = -1
-    return Tracks(track_of=track_of, axis=tracks.axis[ids].astype(np.int8))
+    joined, _ = join_tracks(tracks, root, frame, length)
+    return joined, np.unique(root, return_inverse=True)[1].ravel()
 
 
 def fragmentation(tracks: Tracks, frame: np.ndarray, line: np.ndarray) -> dict:
@@ -140,9 +131,11 @@ def tracks_replaced(mode: str, found: dict):
         found["before"] = fragmentation(tracks, frame, line)
         if mode != "default":
             length = np.linalg.norm(seg.endpoints[:, 2:].astype(np.float64) - seg.endpoints[:, :2], axis=1)
-            tracks = join_by_ground_truth(tracks, frame, length, line, disjoint=(mode != "oracle-join-all"),
-                                          near_frames=NEAR_FRAMES if mode == "oracle-join-near" else None)
-            found["after"] = fragmentation(tracks, frame, gt_line_of_tracks(capture, pre, tracks))
+            tracks, new = join_by_ground_truth(tracks, frame, length, line, disjoint=(mode != "oracle-join-all"),
+                                               near_frames=NEAR_FRAMES if mode == "oracle-join-near" else None)
+            joined_line = np.full(tracks.n, -1)
+            joined_line[new] = line  # a joined track's members share their line (unmapped ones stay alone)
+            found["after"] = fragmentation(tracks, frame, joined_line)
         return tracks
 
     pipeline._track = track

@@ -470,18 +470,28 @@ def merge_fragments(tracks: Tracks, segments: Segments, K: np.ndarray, R_wc: np.
         if ra != rb:
             parent[rb] = ra
     root = np.array([find(i) for i in range(T)])
+    length = np.linalg.norm(segments.endpoints[:, 2:].astype(np.float64) - segments.endpoints[:, :2], axis=1)
+    joined, dropped = join_tracks(tracks, root, segments.frame, length)
+    log.info("fragments: %d tracks joined into %d (gaps <= %d frames, %.1f px, %d duplicate segments left out)",
+             T, joined.n, gap_frames, tol_px, dropped)
+    return joined
+
+
+def join_tracks(tracks: Tracks, root: np.ndarray, frame: np.ndarray, length: np.ndarray) -> tuple[Tracks, int]:
+    """Returns (tracks with each track joined into the track ``root[t]`` names, segments left out).
+
+    Tracks are renumbered in the order of their roots. A track holds one segment per frame: where
+    the joined tracks had several in one frame, the longest (``length`` per segment) stays.
+    """
     ids, new = np.unique(root, return_inverse=True)
-    track_of = np.where(to >= 0, new[np.maximum(to, 0)], -1).astype(np.int32)
-    # one segment per frame per track: the longest stays
+    to = np.asarray(tracks.track_of)
+    track_of = np.where(to >= 0, new.ravel()[np.maximum(to, 0)], -1).astype(np.int32)
     s = np.flatnonzero(track_of >= 0)
-    length = np.linalg.norm(segments.endpoints[s, 2:].astype(np.float64) - segments.endpoints[s, :2], axis=1)
-    o = np.lexsort((-length, segments.frame[s], track_of[s]))
-    key_t, key_f = track_of[s][o], segments.frame[s][o]
+    o = np.lexsort((-length[s], frame[s], track_of[s]))
+    key_t, key_f = track_of[s][o], frame[s][o]
     dup = np.concatenate([[False], (key_t[1:] == key_t[:-1]) & (key_f[1:] == key_f[:-1])])
     track_of[s[o][dup]] = -1
-    log.info("fragments: %d tracks joined into %d (gaps <= %d frames, %.1f px, %d duplicate segments left out)",
-             T, len(ids), gap_frames, tol_px, int(dup.sum()))
-    return Tracks(track_of=track_of, axis=tracks.axis[ids].astype(np.int8))
+    return Tracks(track_of=track_of, axis=tracks.axis[ids].astype(np.int8)), int(dup.sum())
 
 
 def track_lines(
