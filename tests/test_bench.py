@@ -3,7 +3,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
-from bench import _medians, format_bench  # noqa: E402
+from bench import _medians, capture_dir, format_bench  # noqa: E402
 
 
 def _run(reg, centre, reproj):
@@ -37,3 +37,9 @@ def test_drop_captures_deletes_each_capture_once_scored(tmp_path):
     assert entry["exit"] == 0 and "metrics" in entry  # it was run and scored ...
     assert list((tmp_path / "captures").iterdir()) == []  # ... and its capture is gone
     assert (tmp_path / "bench.json").exists() and (tmp_path / "runs" / "living" / "panosfm").is_dir()
+
+
+def test_capture_names_are_shared_by_the_benchmarks():
+    # tools/bench.py and tools/bench_tracking.py name captures alike, so one folder's captures serve the other
+    assert capture_dir(Path("o"), "office", 300, (960, 540), 12) == Path("o/captures/office-300-960x540-s12")
+    assert capture_dir(Path("o"), "living", 300, (960, 540), 0, 0.05).name == "living-300-960x540-s0-sway0.05"

@@ -35,6 +35,12 @@ def _run(cmd: list[str]) -> tuple[int, float, str]:
     return proc.returncode, time.perf_counter() - t0, (proc.stderr or "")[-2000:]
 
 
+def capture_dir(out: Path, scene: str, frames: int, size: tuple[int, int], seed: int, sway_m: float = 0.0) -> Path:
+    """Returns where a benchmark keeps the synthetic capture of these settings (``OUT/captures/NAME``): one name
+    for every benchmark, so that captures can be linked from one output folder into another."""
+    return out / "captures" / (f"{scene}-{frames}-{size[0]}x{size[1]}-s{seed}" + (f"-sway{sway_m:g}" if sway_m > 0 else ""))
+
+
 def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peers: list[str],
           seed: int = 0, reuse_peer: bool = False, seeds: int = 1, settings: list[str] = (),
           resume: bool = False, sway_m: float = 0.0, drop_captures: bool = False) -> dict:
@@ -57,8 +63,7 @@ def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peer
     record["sway_m"] = sway_m
     for k, scene, j in runs:
         name = scene if j == 0 else f"{scene}#{j}"  # capture j of the scene: seed + k + 10 j
-        cap = out / "captures" / (f"{scene}-{frames}-{size[0]}x{size[1]}-s{seed + k + 10 * j}"
-                                   + (f"-sway{sway_m:g}" if sway_m > 0 else ""))
+        cap = capture_dir(out, scene, frames, size, seed + k + 10 * j, sway_m)
         if not (cap / "imu.csv").exists():
             t0 = time.perf_counter()
             synthesize(cap, scene=scene, n_frames=frames, size=size, seed=seed + k + 10 * j, sway_m=sway_m)

@@ -45,6 +45,7 @@ from panosfm_graph.lines.tracking import join_tracks
 from panosfm_graph.synth import synthesize
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench import capture_dir  # noqa: E402
 from bench_relations import ground_truth_view  # noqa: E402
 
 MODES = ("default", "oracle-join-near", "oracle-join", "oracle-join-all")
@@ -187,8 +188,7 @@ def main(argv: list[str] | None = None) -> int:
     for j in range(max(a.seeds, 1)):
         for k, scene in enumerate(scenes):
             seed = a.seed + k + 10 * j
-            cap = out / "captures" / (f"{scene}-{a.frames}-{size[0]}x{size[1]}-s{seed}"
-                                      + (f"-sway{a.sway:g}" if a.sway > 0 else ""))
+            cap = capture_dir(out, scene, a.frames, size, seed, a.sway)
             if not (cap / "imu.csv").exists():
                 synthesize(cap, scene=scene, n_frames=a.frames, size=size, seed=seed, sway_m=a.sway)
             for mode in modes:
