@@ -42,7 +42,7 @@ STAGE_SOURCES: dict[str, tuple[str, ...]] = {
                "panosfm_graph.data", "panosfm_graph.cache", "panosfm_graph.errors", "panosfm_graph.geometry", "panosfm_graph.parallel",
                "panosfm_graph.progress", "panosfm_graph.thumbnails", "panosfm_graph.lines.detect"),
     "preprocess": ("panosfm_graph.lines", "panosfm_graph.lines.manhattan", "panosfm_graph.lines.rotations"),
-    "track": ("panosfm_graph.lines.tracking",),
+    "track": ("panosfm_graph.lines.tracking", "panosfm_graph.lines.fragments"),
     "normals": ("panosfm_graph.normals",),
     "relations": ("panosfm_graph.relations",),
     "linear": ("panosfm_graph.linear", "factors"),

@@ -1,6 +1,7 @@
 """Manhattan line tracking across frames (paper §3.1 'Line tracking', supplement §3)."""
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import numpy as np
@@ -10,7 +11,8 @@ from scipy.spatial import cKDTree
 
 from ..config import Config, TrackingConfig
 from ..data import Segments, Tracks
-from ..geometry import turned_degrees, world_rays
+from ..geometry import turned_degrees
+from .fragments import interpretation_angle, interpretation_offset, join_tracks, merge_fragments  # noqa: F401
 
 log = logging.getLogger("panosfm.lines")
 
@@ -331,169 +333,6 @@ def _split_conflicts(edges: np.ndarray, weights: np.ndarray, frame: np.ndarray, 
     return np.unique(out, return_inverse=True)[1]
 
 
-def interpretation_angle(segments: Segments, seg_ids: np.ndarray, axis: np.ndarray, K: np.ndarray,
-                         R_wc: np.ndarray, directions: np.ndarray) -> np.ndarray:
-    """Returns (N,) the angle (rad, modulo pi) of the plane through the camera and each segment's 3D line.
-
-    The plane holds the Manhattan direction ``directions[axis]`` (world) and
-    the ray of the segment's mid-point, so its normal lies in the plane
-    orthogonal to that direction; the angle is the normal's direction there
-    (basis: the other two Manhattan directions). For a camera that only
-    rotates it is the same in every frame; the camera's translation makes it
-    drift slowly (2-5 px per frame at 1.5 m). The vanishing point fixes the
-    image line's direction, so the mid-point alone gives the angle (the
-    segment's own angle is ~1 degree off on a short piece).
-    """
-    ep = segments.endpoints[seg_ids].astype(np.float64)
-    ray = world_rays(K, R_wc[segments.frame[seg_ids]], 0.5 * (ep[:, :2] + ep[:, 2:]))
-    other = np.array([[1, 2], [0, 2], [0, 1]])[axis]
-    n = np.cross(directions[axis], ray)
-    return np.arctan2(np.sum(n * directions[other[:, 1]], axis=1), np.sum(n * directions[other[:, 0]], axis=1))
-
-
-def interpretation_offset(segments: Segments, seg_ids: np.ndarray, axis: np.ndarray, angle: np.ndarray,
-                          K: np.ndarray, R_wc: np.ndarray, directions: np.ndarray) -> np.ndarray:
-    """Returns (N,) the distance (px) of each segment's mid-point from the image of the plane at ``angle``.
-
-    The inverse of :func:`interpretation_angle`: the plane through the camera holding
-    ``directions[axis]`` at ``angle`` (rad) is imaged as a line in the segment's frame. Near a
-    vanishing point a small angle is a large image distance, and the other way round, so a
-    tolerance on angles alone is uneven across the image.
-    """
-    other = np.array([[1, 2], [0, 2], [0, 1]])[axis]
-    n_w = np.cos(angle)[:, None] * directions[other[:, 0]] + np.sin(angle)[:, None] * directions[other[:, 1]]
-    f = segments.frame[seg_ids]
-    line = np.einsum("ij,nkj,nk->ni", np.linalg.inv(K).T, R_wc[f], n_w)  # K^-T R^T n: the plane's image line
-    ep = segments.endpoints[seg_ids].astype(np.float64)
-    mid = np.column_stack([0.5 * (ep[:, :2] + ep[:, 2:]), np.ones(len(ep))])
-    return np.abs(np.sum(line * mid, axis=1)) / np.maximum(np.hypot(line[:, 0], line[:, 1]), 1e-12)
-
-
-def _wrap_pi(a: np.ndarray) -> np.ndarray:
-    """Returns angles modulo pi in [-pi/2, pi/2)."""
-    return (a + np.pi / 2) % np.pi - np.pi / 2
-
-
-def merge_fragments(tracks: Tracks, segments: Segments, K: np.ndarray, R_wc: np.ndarray, directions: np.ndarray,
-                    gap_frames: int, tol_px: float, overlap: bool = False, image_px: float = 0.0) -> Tracks:
-    """Returns tracks with fragments of one 3D line joined (our addition to supplement §3).
-
-    A line whose detections break into pieces (low contrast, texture) is
-    tracked as a chain of short tracks: the frame-to-frame matching loses it
-    for a frame or two and starts a new track. Each track's
-    :func:`interpretation_angle` is fitted as a linear function of the frame
-    (the drift is the parallax of the camera's translation); a track that
-    ends ``1..gap_frames`` frames before another of the same Manhattan axis
-    starts is joined to it when the two fits, evaluated half-way across the
-    gap, agree within ``tol_px / f``. Each track end joins at most one track
-    start (nearest fits first), so tracks join into chains and never hold two
-    segments of one frame. With ``overlap``, tracks whose spans overlap (two
-    pieces of one line followed side by side) are joined too when their fits
-    agree in the middle of the overlap; in a frame where the joined track then
-    holds two segments only the longest stays. With ``image_px`` > 0 the join
-    must also hold in the image: each track's fit, carried to the other's
-    nearest segment (its first, or last), passes within ``image_px`` of that
-    segment's mid-point (:func:`interpretation_offset`; near a vanishing point
-    two lines 14 px apart in the image are 2 px apart in angle times focal
-    length). Candidate pairs come from the tracks sorted by their first frame
-    (no all-pairs loop).
-    """
-    to = np.asarray(tracks.track_of)
-    T = tracks.n
-    if T < 2 or gap_frames < 1:
-        return tracks
-    seg = np.flatnonzero(to >= 0)
-    t = to[seg].astype(np.int64)
-    fr = segments.frame[seg].astype(np.int64)
-    ax = tracks.axis[t].astype(np.int64)
-    phi = interpretation_angle(segments, seg, ax, K, R_wc, directions)
-    first = np.full(T, np.iinfo(np.int64).max)
-    last = np.full(T, -1)
-    np.minimum.at(first, t, fr)
-    np.maximum.at(last, t, fr)
-    # unwrap each track's angles around its first segment's, then a least-squares line phi(f - first)
-    ref = np.zeros(T)
-    ref[t[::-1]] = phi[::-1]  # a segment of each track (the first listed)
-    p = ref[t] + _wrap_pi(phi - ref[t])
-    x = (fr - first[t]).astype(np.float64)
-    n = np.bincount(t, minlength=T).astype(np.float64)
-    sx, sp_ = np.bincount(t, x, T), np.bincount(t, p, T)
-    sxx, sxp = np.bincount(t, x * x, T), np.bincount(t, x * p, T)
-    den = n * sxx - sx * sx
-    ok = den > 1e-9
-    slope = np.where(ok, (n * sxp - sx * sp_) / np.where(ok, den, 1.0), 0.0)
-    icpt = (sp_ - slope * sx) / np.maximum(n, 1.0)
-    # candidates: b starts after a's first frame and at most gap_frames after a's last, same axis
-    order = np.argsort(first, kind="stable")
-    lo = np.searchsorted(first[order], (first if overlap else last + 1), side="left")
-    hi = np.searchsorted(first[order], last + gap_frames, side="right")
-    cnt = np.maximum(hi - lo, 0)
-    a = np.repeat(np.arange(T), cnt)
-    b = order[np.repeat(lo, cnt) + (np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt))]
-    keep = (tracks.axis[a] == tracks.axis[b]) & (a != b) & ((first[b] > first[a]) | (b > a))
-    a, b = a[keep], b[keep]
-    seq = first[b] > last[a]
-    # where the two fits are compared: half-way across the gap, or the middle of the overlap
-    at = np.where(seq, 0.5 * (last[a] + first[b]), 0.5 * (first[b] + np.minimum(last[a], last[b])))
-    d = np.abs(_wrap_pi(icpt[b] + slope[b] * (at - first[b]) - icpt[a] - slope[a] * (at - first[a])))
-    keep = d * K[0, 0] < tol_px
-    a, b, d, seq = a[keep], b[keep], d[keep], seq[keep]
-    if image_px > 0 and len(a):  # and in the image: each fit against the other track's nearest segment
-        first_seg = np.zeros(T, np.int64)  # a track holds one segment per frame: the one in its first / last frame
-        last_seg = np.zeros(T, np.int64)
-        at_first, at_last = fr == first[t], fr == last[t]
-        first_seg[t[at_first]] = seg[at_first]
-        last_seg[t[at_last]] = seg[at_last]
-
-        def off(fit: np.ndarray, at: np.ndarray) -> np.ndarray:
-            angle = icpt[fit] + slope[fit] * (segments.frame[at] - first[fit])
-            return interpretation_offset(segments, at, tracks.axis[fit].astype(np.int64), angle, K, R_wc, directions)
-
-        keep = np.maximum(off(a, first_seg[b]), off(b, last_seg[a])) < image_px
-        a, b, d, seq = a[keep], b[keep], d[keep], seq[keep]
-    parent = np.arange(T)
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    used_a = np.zeros(T, bool)
-    used_b = np.zeros(T, bool)
-    for i in np.argsort(d, kind="stable"):  # candidates only (a few per track)
-        if seq[i]:  # a chain: each end continues into one start
-            if used_a[a[i]] or used_b[b[i]]:
-                continue
-            used_a[a[i]] = used_b[b[i]] = True
-        ra, rb = find(int(a[i])), find(int(b[i]))
-        if ra != rb:
-            parent[rb] = ra
-    root = np.array([find(i) for i in range(T)])
-    length = np.linalg.norm(segments.endpoints[:, 2:].astype(np.float64) - segments.endpoints[:, :2], axis=1)
-    joined, dropped = join_tracks(tracks, root, segments.frame, length)
-    log.info("fragments: %d tracks joined into %d (gaps <= %d frames, %.1f px, %d duplicate segments left out)",
-             T, joined.n, gap_frames, tol_px, dropped)
-    return joined
-
-
-def join_tracks(tracks: Tracks, root: np.ndarray, frame: np.ndarray, length: np.ndarray) -> tuple[Tracks, int]:
-    """Returns (tracks with each track joined into the track ``root[t]`` names, segments left out).
-
-    Tracks are renumbered in the order of their roots. A track holds one segment per frame: where
-    the joined tracks had several in one frame, the longest (``length`` per segment) stays.
-    """
-    ids, new = np.unique(root, return_inverse=True)
-    to = np.asarray(tracks.track_of)
-    track_of = np.where(to >= 0, new.ravel()[np.maximum(to, 0)], -1).astype(np.int32)
-    s = np.flatnonzero(track_of >= 0)
-    o = np.lexsort((-length[s], frame[s], track_of[s]))
-    key_t, key_f = track_of[s][o], frame[s][o]
-    dup = np.concatenate([[False], (key_t[1:] == key_t[:-1]) & (key_f[1:] == key_f[:-1])])
-    track_of[s[o][dup]] = -1
-    return Tracks(track_of=track_of, axis=tracks.axis[ids].astype(np.int8)), int(dup.sum())
-
-
 def track_lines(
     segments: Segments,
     labels: np.ndarray,
@@ -549,34 +388,69 @@ def track_lines(
     """
     cfg = _tracking_config(config)
     S = segments.n
-    track_of = np.full(S, -1, dtype=np.int32)
     manhattan = labels >= 0
     if S == 0 or not np.any(manhattan):
-        return Tracks(track_of=track_of, axis=np.zeros(0, dtype=np.int8))
-    if image_size is not None:
-        min_side = float(min(image_size))
-    else:
-        min_side = min(2.0 * K[0, 2] + 1.0, 2.0 * K[1, 2] + 1.0)  # principal point ~ image centre
-    dist_px = cfg.match_dist_frac * min_side
-    F = len(R_wc)
+        return _no_tracks(S)
+    min_side = _min_side(K, image_size)
     pairs = frame_pairs(R_wc, cfg.axis_angle_deg)
     bridges = _bridge_pairs(R_wc, cfg.bridge_angle_deg, pairs)
     loops = loop_pairs(R_wc, cfg.loop_angle_deg, pairs)
-    mlines = None if directions is None else manhattan_lines(segments, labels, K, R_wc, directions)
-    rep, ends = colinear_groups(segments, labels, cfg.colinear_px, mlines if cfg.vp_colinear else None)
-    contrast = segments.contrast if cfg.polarity_min > 0 else None
-    gap = None if cfg.match_gap_frac is None else cfg.match_gap_frac * min_side
-    head = manhattan & (rep == np.arange(S))  # one observation per group of colinear pieces
-    idx = [np.flatnonzero(head[segments.of_frame(f)]) + segments.frame_offsets[f] for f in range(F)]
-    labs = labels
-    fwd_gap = np.full(S, np.iinfo(np.int64).max)  # smallest frame gap to a later matched frame
-    bwd_gap = np.full(S, np.iinfo(np.int64).max)  # ... to an earlier one
-    src, dst, wts = [], [], []
+    matcher = _pair_matcher(segments, labels, K, R_wc, directions, cfg, min_side)
+    matches = _match_frame_pairs(matcher, _observations(segments, labels, matcher.rep, len(R_wc)),
+                                 np.concatenate([pairs, loops]), bridges, S)
+    if matches is None:
+        return _no_tracks(S)
+    tracks = _tracks_of_matches(*matches, segments, labels, cfg.min_track_length, len(pairs) + len(loops))
+    if cfg.merge_gap_frames > 0 and directions is not None:
+        tracks = merge_fragments(tracks, segments, K, R_wc, directions, cfg.merge_gap_frames, cfg.merge_tol_px,
+                                 cfg.merge_overlap, cfg.merge_image_px)
+    if cfg.min_longest_frac > 0:
+        tracks = drop_short_tracks(tracks, segments, cfg.min_longest_frac * min_side)
+    return tracks
 
-    def match(i: int, j: int, ia: np.ndarray, ib: np.ndarray, bridge: bool = False) -> None:
-        if len(ia) == 0 or len(ib) == 0:
-            return
-        H = rotation_homography(K, R_wc[i], R_wc[j])
+
+def _no_tracks(n_segments: int) -> Tracks:
+    """Returns :class:`Tracks` with no track (every segment -1)."""
+    return Tracks(track_of=np.full(n_segments, -1, dtype=np.int32), axis=np.zeros(0, dtype=np.int8))
+
+
+def _min_side(K: np.ndarray, image_size: tuple[int, int] | None) -> float:
+    """Returns min(w, h) of the images (px): of ``image_size`` (w, h), else from the principal point (image centre)."""
+    if image_size is not None:
+        return float(min(image_size))
+    return min(2.0 * K[0, 2] + 1.0, 2.0 * K[1, 2] + 1.0)  # principal point ~ image centre
+
+
+@dataclasses.dataclass(frozen=True)
+class _PairMatcher:
+    """Callable ``(i, j, ia, ib) -> (index in ia, index in ib, distance px)``: the matches between frames i and j.
+
+    Supplement §3 with our refinements (see :func:`track_lines`): ``ia``/``ib``
+    are the frames' observations (segment ids); a segment is matched as
+    ``ends[s]``, the span of its group of colinear pieces (``rep``: each
+    segment's group head, :func:`colinear_groups`); ``lines`` are the
+    segments' vanishing-point lines (:func:`manhattan_lines`, None without
+    the Manhattan directions); ``contrast`` their polarity (None: not used);
+    ``dist_px`` the paper's distance threshold, ``gap_px`` the largest gap
+    along the line (None: no overlap test).
+    """
+
+    segments: Segments
+    labels: np.ndarray
+    K: np.ndarray
+    R_wc: np.ndarray
+    cfg: TrackingConfig
+    rep: np.ndarray
+    ends: np.ndarray
+    lines: np.ndarray | None
+    contrast: np.ndarray | None
+    dist_px: float
+    gap_px: float | None
+
+    def __call__(self, i: int, j: int, ia: np.ndarray, ib: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        cfg, ends, labs, contrast = self.cfg, self.ends, self.labels, self.contrast
+        gap, dist_px = self.gap_px, self.dist_px
+        H = rotation_homography(self.K, self.R_wc[i], self.R_wc[j])
         pol = {} if contrast is None else dict(contrast_a=contrast[ia], contrast_b=contrast[ib],
                                                polarity_min=cfg.polarity_min)
         a, b, d = match_pair(ends[ia], labs[ia], ends[ib], labs[ib], H, dist_px, cfg.match_angle_deg,
@@ -586,46 +460,86 @@ def track_lines(
             H = np.array([[1.0, 0.0, t[0]], [0.0, 1.0, t[1]], [0.0, 0.0, 1.0]]) @ H
             a, b, d = match_pair(ends[ia], labs[ia], ends[ib], labs[ib], H, dist_px, cfg.match_angle_deg,
                                  cfg.match_angle_px, gap, **pol)
-        if cfg.jump_px > 0 and mlines is not None and len(a):  # a chain never jumps to a neighbouring line
-            near = line_jumps(_warp(H, segments.endpoints[ia[a]].astype(np.float64)), mlines[ib[b]]) < cfg.jump_px
+        if cfg.jump_px > 0 and self.lines is not None and len(a):  # a chain never jumps to a neighbouring line
+            warped = _warp(H, self.segments.endpoints[ia[a]].astype(np.float64))
+            near = line_jumps(warped, self.lines[ib[b]]) < cfg.jump_px
             a, b, d = a[near], b[near], d[near]
-        if bridge:  # mutual best among ALL segments, then kept only between a track end and a track start
-            g = j - i
-            end = (fwd_gap[ia[a]] >= g) & (bwd_gap[ib[b]] >= g)
-            a, b, d = a[end], b[end], d[end]
-        src.append(ia[a])
-        dst.append(ib[b])
-        wts.append(d)
-        np.minimum.at(fwd_gap, ia[a], j - i)
-        np.minimum.at(bwd_gap, ib[b], j - i)
+        return a, b, d
 
-    for i, j in np.concatenate([pairs, loops]):
-        match(int(i), int(j), idx[i], idx[j])
-    # bridges, nearest in time first: only segments not yet continued within the gap take part
-    for i, j in bridges:
-        match(int(i), int(j), idx[i], idx[j], bridge=True)
+
+def _pair_matcher(segments: Segments, labels: np.ndarray, K: np.ndarray, R_wc: np.ndarray,
+                  directions: np.ndarray | None, cfg: TrackingConfig, min_side: float) -> _PairMatcher:
+    """Returns the :class:`_PairMatcher` of the segments: colinear pieces grouped, thresholds in pixels."""
+    dist_px = cfg.match_dist_frac * min_side
+    mlines = None if directions is None else manhattan_lines(segments, labels, K, R_wc, directions)
+    rep, ends = colinear_groups(segments, labels, cfg.colinear_px, mlines if cfg.vp_colinear else None)
+    contrast = segments.contrast if cfg.polarity_min > 0 else None
+    gap = None if cfg.match_gap_frac is None else cfg.match_gap_frac * min_side
+    return _PairMatcher(segments, labels, K, R_wc, cfg, rep, ends, mlines, contrast, dist_px, gap)
+
+
+def _observations(segments: Segments, labels: np.ndarray, rep: np.ndarray, n_frames: int) -> list[np.ndarray]:
+    """Returns each frame's observations: its Manhattan segments that head their group of colinear pieces."""
+    head = (labels >= 0) & (rep == np.arange(segments.n))  # one observation per group of colinear pieces
+    return [np.flatnonzero(head[segments.of_frame(f)]) + segments.frame_offsets[f] for f in range(n_frames)]
+
+
+def _match_frame_pairs(match: _PairMatcher, idx: list[np.ndarray], pairs: np.ndarray, bridges: np.ndarray,
+                       S: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Returns (edges (M, 2) segment ids, distances (M,) px) of the matches of all frame pairs (None: no pair matched).
+
+    ``pairs`` first, then the ``bridges``, nearest in time first: a bridge
+    keeps a mutual-best match (among ALL segments of both frames) only
+    between a segment not yet continued to a later frame within the gap and
+    one not yet continued from an earlier frame (a track end and a track
+    start).
+    """
+    fwd_gap = np.full(S, np.iinfo(np.int64).max)  # smallest frame gap to a later matched frame
+    bwd_gap = np.full(S, np.iinfo(np.int64).max)  # ... to an earlier one
+    src, dst, wts = [], [], []
+    for bridge, todo in ((False, pairs), (True, bridges)):
+        for i, j in todo:
+            i, j = int(i), int(j)
+            ia, ib = idx[i], idx[j]
+            if len(ia) == 0 or len(ib) == 0:
+                continue
+            a, b, d = match(i, j, ia, ib)
+            if bridge:  # mutual best among ALL segments, then kept only between a track end and a track start
+                g = j - i
+                end = (fwd_gap[ia[a]] >= g) & (bwd_gap[ib[b]] >= g)
+                a, b, d = a[end], b[end], d[end]
+            src.append(ia[a])
+            dst.append(ib[b])
+            wts.append(d)
+            np.minimum.at(fwd_gap, ia[a], j - i)
+            np.minimum.at(bwd_gap, ib[b], j - i)
     if not src:
-        return Tracks(track_of=track_of, axis=np.zeros(0, dtype=np.int8))
-    edges = np.stack([np.concatenate(src), np.concatenate(dst)], axis=1)
-    weights = np.concatenate(wts)
+        return None
+    return np.stack([np.concatenate(src), np.concatenate(dst)], axis=1), np.concatenate(wts)
+
+
+def _tracks_of_matches(edges: np.ndarray, weights: np.ndarray, segments: Segments, labels: np.ndarray,
+                       min_track_length: int, n_pairs: int) -> Tracks:
+    """Returns the tracks: connected components of the matches, split where one holds two segments of a frame.
+
+    Components shorter than ``min_track_length`` (at least 2) are dropped;
+    a track's axis is its segments' Manhattan label.
+    """
+    S = segments.n
+    manhattan = labels >= 0
+    track_of = np.full(S, -1, dtype=np.int32)
     comp = _split_conflicts(edges, weights, segments.frame.astype(np.int64), S)
     size = np.bincount(comp)
-    keep = manhattan & (size[comp] >= max(cfg.min_track_length, 2))
+    keep = manhattan & (size[comp] >= max(min_track_length, 2))
     ids, track = np.unique(comp[keep], return_inverse=True)
     track_of[keep] = track
     axis = np.zeros(len(ids), dtype=np.int8)
     axis[track] = labels[keep]
     log.info(
         "%d tracks from %d matches over %d frame pairs (mean length %.1f)",
-        len(ids), len(edges), len(pairs) + len(loops), keep.sum() / max(len(ids), 1),
+        len(ids), len(edges), n_pairs, keep.sum() / max(len(ids), 1),
     )
-    tracks = Tracks(track_of=track_of, axis=axis)
-    if cfg.merge_gap_frames > 0 and directions is not None:
-        tracks = merge_fragments(tracks, segments, K, R_wc, directions, cfg.merge_gap_frames, cfg.merge_tol_px,
-                                 cfg.merge_overlap, cfg.merge_image_px)
-    if cfg.min_longest_frac > 0:
-        tracks = drop_short_tracks(tracks, segments, cfg.min_longest_frac * min_side)
-    return tracks
+    return Tracks(track_of=track_of, axis=axis)
 
 
 def drop_short_tracks(tracks: Tracks, segments: Segments, min_longest_px: float) -> Tracks:
