@@ -8,7 +8,8 @@
   camera centres as green dots and the ratio of registered frames
   (paper: "top-down view").
 
-Only OpenCV drawing; no viewer needed. Everything is auto-framed to a robust
+All three are drawn in the Manhattan frame (turned about the vertical so that
+walls run along the pictures' axes). Only OpenCV drawing; no viewer needed. Everything is auto-framed to a robust
 extent of the model (percentiles), so a few wild lines cannot shrink the room
 to a dot. Images are BGR, ``IMAGE_SIZE`` pixels.
 """
@@ -274,12 +275,35 @@ def height_colors(z_above_floor: np.ndarray, top: float) -> np.ndarray:
 # ----------------------------------------------------------------------------- the three views
 
 
+def manhattan_alignment(lines: LineModel) -> np.ndarray:
+    """Returns the (3, 3) turn about the vertical that lays the Manhattan frame's x axis along the view's x.
+
+    The views are drawn in the Manhattan frame (paper §3.1), so walls run
+    horizontally and vertically in the pictures. The x direction is that of the
+    lines labelled x (their ``direction`` is the Manhattan direction, paper
+    §3.4), else that of the y lines turned back 90 degrees; the identity when
+    neither is horizontal. The turn is taken in (-90, 90] degrees.
+    """
+    valid = np.asarray(lines.valid, dtype=bool) & np.all(np.isfinite(lines.direction), axis=1)
+    axis = np.asarray(lines.axis)
+    for k, offset in ((0, 0.0), (1, -np.pi / 2)):
+        d = np.asarray(lines.direction, dtype=np.float64)[valid & (axis == k)]
+        if len(d) and np.hypot(d[0, 0], d[0, 1]) > 0.5:
+            yaw = np.arctan2(d[0, 1], d[0, 0]) + offset
+            yaw = (yaw + np.pi / 2) % np.pi - np.pi / 2  # a line has no sign: (-90, 90] degrees
+            c, s = np.cos(yaw), np.sin(yaw)
+            return np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    return np.eye(3)
+
+
 def _prepare(lines: LineModel, centers: np.ndarray, registered: np.ndarray):
+    """Returns (ends, their line indices, camera centres, lo, hi) in the Manhattan-aligned view frame."""
     valid = valid_line_mask(lines)
-    ends = lines.endpoints[valid]
+    R = manhattan_alignment(lines)
+    ends = (lines.endpoints[valid].reshape(-1, 3) @ R.T).reshape(-1, 6)
     idx = np.flatnonzero(valid)
     cams = np.asarray(centers, dtype=np.float64)[np.asarray(registered, dtype=bool)]
-    cams = cams[np.all(np.isfinite(cams), axis=1)]
+    cams = cams[np.all(np.isfinite(cams), axis=1)] @ R.T
     lo, hi = _model_box(ends, cams)
     keep = _inlier_lines(ends, lo, hi) if len(ends) else np.zeros(0, bool)
     return ends[keep], idx[keep], cams, lo, hi

@@ -15,6 +15,7 @@ from panosfm_graph.views import (
     floor_height,
     height_colors,
     height_top,
+    manhattan_alignment,
     nice_step,
     render_height,
     render_quarter,
@@ -148,10 +149,23 @@ def test_height_view_colours_follow_height_above_floor():
     assert np.abs(floor_col - ceil_col).sum() > 200  # the two ends of the heat map differ clearly
 
 
-def test_topdown_is_orthographic_with_cameras_and_scale():
+def turned(lines: LineModel, points: np.ndarray, yaw_deg: float) -> tuple[LineModel, np.ndarray]:
+    """Returns the line model and points turned by ``yaw_deg`` about the vertical (a room whose walls are not
+    along the world's axes, as when the IMU's heading is arbitrary)."""
+    c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return (LineModel(taylor=lines.taylor @ R.T, direction=lines.direction @ R.T, axis=lines.axis,
+                      extent=lines.extent, valid=lines.valid), points @ R.T)
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 30.0, -100.0])
+def test_topdown_is_orthographic_with_cameras_and_scale(yaw_deg):
+    """The room is drawn in its Manhattan frame: turned about the vertical, its walls still run along the
+    picture's axes and the picture is the same."""
     ends, colors, _ = box_room()
     lines, _ = with_junk(ends, colors)
     centers = spin_centers(60, 0.3) + [0.5, 0.5, 0.0]
+    lines, centers = turned(lines, centers, yaw_deg)
     reg = np.ones(len(centers), bool)
     img = render_topdown(lines, centers, reg, metric=True)
     body = img[70:-70]
@@ -197,3 +211,23 @@ def test_track_colors_average_segment_colours():
 @pytest.mark.parametrize("span,expected", [(10.0, 2.0), (2.6, 1.0), (0.07, 0.02), (4.0, 1.0), (7.0, 2.0)])
 def test_nice_step(span, expected):
     assert nice_step(span, 5) == pytest.approx(expected)
+
+
+def test_views_are_aligned_to_the_manhattan_frame():
+    """manhattan_alignment undoes a turn of the room about the vertical (x lines along the view's x), and a
+    model without horizontal lines is left as it is."""
+    ends, colors, _ = box_room()
+    lines = line_model(ends)
+    for yaw in (0.0, 25.0, 89.0, -135.0):
+        lt, _ = turned(lines, np.zeros((1, 3)), yaw)
+        R = manhattan_alignment(lt)
+        d = lt.direction[lt.axis == 0] @ R.T
+        np.testing.assert_allclose(np.abs(d[:, 0]), 1.0, atol=1e-12)
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+        np.testing.assert_allclose(R[2], [0, 0, 1])
+    only_y = line_model(ends[np.abs(ends[:, 1] - ends[:, 4]) > 0.1])
+    lt, _ = turned(only_y, np.zeros((1, 3)), 40.0)
+    d = lt.direction[lt.axis == 1] @ manhattan_alignment(lt).T
+    np.testing.assert_allclose(np.abs(d[:, 1]), 1.0, atol=1e-12)
+    vertical = line_model(ends[np.abs(ends[:, 2] - ends[:, 5]) > 0.1])
+    np.testing.assert_array_equal(manhattan_alignment(vertical), np.eye(3))
