@@ -82,6 +82,7 @@ class TrackingConfig:
     """Supplement §3 (line tracking)."""
 
     axis_angle_deg: float = 2.0  # match frames whose optical axes are within this angle
+    axis_angle_steps: float = 1.5  # ... or within this many median frame steps, if more (slow frame rates; 0: paper)
     match_dist_frac: float = 0.05  # smallest endpoint-to-line distance < this * min(w, h)
     match_angle_deg: float = 1.0  # angle difference between matched segments
     min_track_length: int = 2  # tracks with fewer segments are dropped (3: purer, worse end to end)

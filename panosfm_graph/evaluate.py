@@ -446,6 +446,8 @@ def _run_frames(recon_dir: Path) -> int | None:
         v = json.loads((recon_dir / "summary.json").read_text()).get("frames")
     except (OSError, ValueError, AttributeError):
         return None
+    if isinstance(v, dict):  # summary.json's "frames": {"total": N, "registered": ...}
+        v = v.get("total")
     return int(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
 
 

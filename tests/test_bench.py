@@ -7,7 +7,7 @@ from bench import _medians, capture_dir, format_bench  # noqa: E402
 
 
 def _run(reg, centre, reproj):
-    return {"wall_s": 1.0, "metrics": {"registered_ratio": reg, "center_error_rel": {"median": centre},
+    return {"wall_s": 1.0, "metrics": {"registered_share": reg, "center_error_rel": {"median": centre},
                                        "rotation_error_rotalign_deg": {"median": 0.1},
                                        "reprojection_px": {"mean": reproj},
                                        "lines": {"distance_m": {"median": 0.1}, "recovered_share": 0.5}}}

@@ -172,6 +172,8 @@ def test_few_frames_and_no_lines(tmp_path, cap):
     (out / "summary.json").write_text(json.dumps({"frames": 18}))  # e.g. a run on every 2nd frame
     m = evaluate_reconstruction(cap, out)
     assert m["run_frames"] == 18 and "the run took 18 frames" in format_metrics(m)
+    (out / "summary.json").write_text(json.dumps({"frames": {"total": 18, "registered": 2}}))  # as runs write it
+    assert evaluate_reconstruction(cap, out)["run_frames"] == 18
     assert m["registered"] == 2 and abs(m["registered_ratio"] - 2 / N_CAMS) < 1e-12
     assert "orientations" in m["alignment"]["method"]
     assert m["center_error_m"]["max"] < 1e-6 and m["rotation_error_deg"]["max"] < 1e-6

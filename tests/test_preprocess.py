@@ -19,6 +19,7 @@ from panosfm_graph.config import Config, DetectConfig, with_overrides
 from panosfm_graph.data import Camera, Capture, GroundTruth, Segments
 from panosfm_graph.errors import InputError, TooFewLinesError
 from panosfm_graph.lines import preprocess, track_lines
+from panosfm_graph.lines.tracking import pair_angle_deg
 from panosfm_graph.lines.detect import detect_frame, detect_segments, merge_segments
 from panosfm_graph.lines.manhattan import label_segments, manhattan_frame, sphere_bins
 from panosfm_graph.lines.rotations import heading_drift, manhattan_factor, neighbour_pairs, rotate_heading
@@ -371,6 +372,21 @@ def test_tracks_are_pure_and_long(slow_pan):
     assert len(np.unique(key)) == len(key)
     assert np.all(pre.labels[seg] == tracks.axis[t_of])
     assert np.all(tracks.track_of[pre.labels < 0] == -1)
+
+
+def test_a_spin_of_few_frames_is_tracked():
+    """Frames 5 degrees apart (a spin of 72 frames per turn): the paper's fixed 2 degrees pairs no frames and
+    leaves no track; pairing neighbours by the spin's median step gives pure tracks over several frames."""
+    cap = make_capture(n_frames=13, sweep_deg=60.0, drift_deg=(0.2, 0.2, 1.0))
+    pre = preprocess(cap, with_overrides(Config(), detect={"workers": 1}))
+    assert 7.0 < pair_angle_deg(pre.R_wc, 2.0, 1.5) < 9.0  # 1.5 steps of about 5 degrees (with drift)
+    assert pair_angle_deg(pre.R_wc, 2.0, 0.0) == 2.0
+    assert track_lines(cap, pre, with_overrides(Config(), tracking={"axis_angle_steps": 0.0})).n == 0
+    tracks = track_lines(cap, pre, Config())
+    ev = evaluate(cap, pre, tracks, gt_px=1.5)
+    assert tracks.n >= 10
+    assert ev["track_purity_mean"] >= 0.95, ev
+    assert ev["track_length_mean"] >= 3, ev
 
 
 def test_gt_edge_matching_is_exact_on_gt_projections():

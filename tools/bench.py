@@ -43,12 +43,13 @@ def capture_dir(out: Path, scene: str, frames: int, size: tuple[int, int], seed:
 
 def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peers: list[str],
           seed: int = 0, reuse_peer: bool = False, seeds: int = 1, settings: list[str] = (),
-          resume: bool = False, sway_m: float = 0.0, drop_captures: bool = False) -> dict:
+          resume: bool = False, sway_m: float = 0.0, drop_captures: bool = False, every: int = 1) -> dict:
     """Returns the benchmark record (also written to ``out/bench.json`` and ``out/bench.md``).
 
     With ``drop_captures`` each capture is deleted once its runs are scored (1.6-1.7 GB each at 300 frames
     960x540, most of it the ground truth's depth and normal maps; the synthesis is deterministic, so a later
-    ``--resume`` run writes it again).
+    ``--resume`` run writes it again). With ``every`` > 1 panosfm takes every k-th frame of each capture
+    (``panosfm run --every``: a spin of fewer frames per turn) and its registered share is of the frames taken.
     """
     from panosfm_graph.capture import load_capture
     from panosfm_graph.evaluate import evaluate_reconstruction
@@ -61,6 +62,7 @@ def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peer
     set_args = [a for kv in settings for a in ("--set", kv)]
     record["settings"] = list(settings)
     record["sway_m"] = sway_m
+    record["every"] = every
     for k, scene, j in runs:
         name = scene if j == 0 else f"{scene}#{j}"  # capture j of the scene: seed + k + 10 j
         cap = capture_dir(out, scene, frames, size, seed + k + 10 * j, sway_m)
@@ -74,6 +76,7 @@ def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peer
         rec = out / "runs" / name / "panosfm"
         code, secs, err = _run([sys.executable, "-m", "panosfm_graph", "run", str(cap), str(rec),
                                 "--camera-height", f"{height:.4f}", "--no-rerun", *set_args,
+                                *(["--every", str(every)] if every > 1 else []),
                                 *(["--resume"] if resume else [])])
         entry["panosfm"] = _score(rec, cap, code, secs, err, evaluate_reconstruction)
         print(f"[{name}] panosfm: {_line(entry['panosfm'])}", flush=True)
@@ -102,7 +105,7 @@ def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peer
 
 
 # the metrics tabulated, as paths into ``evaluate_reconstruction``'s dictionary
-METRICS = {"registered": ("registered_ratio",), "centre": ("center_error_rel", "median"),
+METRICS = {"registered": ("registered_share",), "centre": ("center_error_rel", "median"),
            "rotation": ("rotation_error_rotalign_deg", "median"), "reprojection": ("reprojection_px", "mean"),
            "lines": ("lines", "distance_m", "median"), "recovered": ("lines", "recovered_share")}
 
@@ -134,7 +137,8 @@ def _score(rec: Path, cap: Path, code: int, secs: float, err: str, evaluate) -> 
     summary = json.loads((rec / "summary.json").read_text())
     r["seconds"] = summary.get("seconds", {})
     r["peak_memory_mb"] = summary.get("peak_memory_mb")
-    r["metrics"] = evaluate(cap, rec)
+    r["metrics"] = m = evaluate(cap, rec)
+    m["registered_share"] = m["registered"] / (m.get("run_frames") or m["frames"])  # of the frames the run took
     return r
 
 
@@ -150,7 +154,7 @@ def _m(r: dict, *path: str):
 def _line(r: dict) -> str:
     if "error" in r:
         return f"FAILED ({r['error']})"
-    return (f"registered {100 * (_m(r, 'registered_ratio') or 0):.1f} %, "
+    return (f"registered {100 * (_m(r, 'registered_share') or 0):.1f} %, "
             f"corner reproj {_m(r, 'reprojection_px', 'mean')}, wall {r['wall_s']} s")
 
 
@@ -159,8 +163,9 @@ def format_bench(record: dict) -> str:
     def f(v, spec):
         return "n/a" if v is None else format(v, spec)
 
+    every = record.get("every", 1)
     rows = [f"Benchmark {record['date']}, {record['machine']}, {record['frames']} frames at "
-            f"{record['size'][0]}x{record['size'][1]}", "",
+            f"{record['size'][0]}x{record['size'][1]}" + (f", every {every}th frame taken" if every > 1 else ""), "",
             "| scene | method | registered | centre err. median (% diam., sim3) | rot. err. median (deg) "
             "| corner reproj. mean (px) "
             "| line-surface median (m) | edges recovered | seconds | peak MB |",
@@ -172,7 +177,7 @@ def format_bench(record: dict) -> str:
                 continue
             cen = _m(r, "center_error_rel", "median")
             rows.append(
-                f"| {scene} | {method} | {f(100 * (_m(r, 'registered_ratio') or 0), '.1f')} % "
+                f"| {scene} | {method} | {f(100 * (_m(r, 'registered_share') or 0), '.1f')} % "
                 f"| {f(None if cen is None else 100 * cen, '.2f')} "
                 f"| {f(_m(r, 'rotation_error_rotalign_deg', 'median'), '.3f')} "
                 f"| {f(_m(r, 'reprojection_px', 'mean'), '.2f')} "
@@ -214,6 +219,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="synthesise spins that depart this far (m RMS) from an ideal circle (panosfm synth --sway)")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
                    help="a pipeline setting for panosfm run (repeatable)")
+    p.add_argument("--every", type=int, default=1, metavar="K",
+                   help="panosfm takes every K-th frame (panosfm run --every): fewer frames per turn")
     p.add_argument("--drop-captures", action="store_true",
                    help="delete each synthetic capture once scored (45 captures at 960x540 take about 75 GB)")
     args = p.parse_args(argv)
@@ -229,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         peers = [s.strip() for s in args.peer.split(",") if s.strip()]
     bench([s.strip() for s in args.scenes.split(",")], args.frames, (w, h), Path(args.out), peers, args.seed,
-          args.reuse_peer, args.seeds, args.set, args.resume, args.sway, args.drop_captures)
+          args.reuse_peer, args.seeds, args.set, args.resume, args.sway, args.drop_captures, args.every)
     return 0
 
 

@@ -30,6 +30,23 @@ def frame_pairs(R_wc: np.ndarray, axis_angle_deg: float) -> np.ndarray:
     return np.sort(pairs, axis=1).astype(np.int64)
 
 
+def pair_angle_deg(R_wc: np.ndarray, axis_angle_deg: float, axis_angle_steps: float) -> float:
+    """Returns the largest angle (deg) between the optical axes of two frames that are matched.
+
+    The paper's fixed ``axis_angle_deg`` (supplement §3) pairs only frames
+    closer than 2 degrees, about one frame step of a 300-frame spin. A spin
+    filmed at a lower frame rate (or every k-th frame taken) turns further
+    between frames, and no pair would be left. So the angle is at least
+    ``axis_angle_steps`` times the median angle between consecutive frames
+    (ours): every frame is matched to its neighbours at any spin speed.
+    """
+    if axis_angle_steps <= 0 or len(R_wc) < 2:
+        return float(axis_angle_deg)
+    axes = R_wc[:, :, 2]
+    cos = np.clip(np.sum(axes[1:] * axes[:-1], axis=1), -1.0, 1.0)
+    return max(float(axis_angle_deg), axis_angle_steps * float(np.degrees(np.median(np.arccos(cos)))))
+
+
 def _bridge_pairs(R_wc: np.ndarray, bridge_angle_deg: float, base: np.ndarray) -> np.ndarray:
     """Returns (P, 2) frame pairs i < j within ``bridge_angle_deg`` not in ``base``, by frame gap j - i then i."""
     if bridge_angle_deg <= 0 or len(R_wc) < 2:
@@ -345,7 +362,7 @@ def track_lines(
 ) -> Tracks:
     """Returns line tracks: chains of matched Manhattan segments across frames (supplement §3).
 
-    Frame pairs whose optical axes are within ``axis_angle_deg`` are related
+    Frame pairs whose optical axes are within ``axis_angle_deg`` (or :func:`pair_angle_deg`) are related
     by the rotation homography K R_j^T R_i K^-1 (the refined rotations
     replace the paper's SURF homography; ``images`` is accepted for an
     image-based refinement and currently unused). The paper refines that
@@ -392,7 +409,7 @@ def track_lines(
     if S == 0 or not np.any(manhattan):
         return _no_tracks(S)
     min_side = _min_side(K, image_size)
-    pairs = frame_pairs(R_wc, cfg.axis_angle_deg)
+    pairs = frame_pairs(R_wc, pair_angle_deg(R_wc, cfg.axis_angle_deg, cfg.axis_angle_steps))
     bridges = _bridge_pairs(R_wc, cfg.bridge_angle_deg, pairs)
     loops = loop_pairs(R_wc, cfg.loop_angle_deg, pairs)
     matcher = _pair_matcher(segments, labels, K, R_wc, directions, cfg, min_side)
