@@ -360,6 +360,7 @@ def test_too_few_lines_raises_input_error():
 
 def test_tracks_are_pure_and_long(slow_pan):
     cap, pre = slow_pan
+    assert pre.R_wc.flags.c_contiguous  # as the stage cache returns it (a resumed run repeats a fresh one)
     tracks = track_lines(cap, pre, Config())
     ev = evaluate(cap, pre, tracks, gt_px=1.5)
     assert tracks.n >= 15

@@ -65,7 +65,9 @@ def refine_manhattan_and_rotations(segments: Segments, capture: Capture, config:
     mf = manhattan_frame(segments, K, R, config.manhattan, reference=mf)
     labels = label_segments(segments, K, R, mf, config.manhattan)
     check_enough_manhattan(labels, config.manhattan)
-    return Preprocessed(segments=segments, manhattan=mf, labels=labels, R_wc=R, R_wc_imu=R_imu)
+    # contiguous as the stage cache returns it: a strided R_wc gives other last bits downstream (BLAS), so a
+    # resumed run would not repeat the uninterrupted one exactly
+    return Preprocessed(segments=segments, manhattan=mf, labels=labels, R_wc=np.ascontiguousarray(R), R_wc_imu=R_imu)
 
 
 def preprocess(capture: Capture, config: Config, segments: Segments | None = None) -> Preprocessed:
