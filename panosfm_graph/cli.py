@@ -9,10 +9,12 @@ synth       ``panosfm_graph.synth.synthesize``
 inspect     ``panosfm_graph.capture.inspect_capture``
 eval        ``panosfm_graph.evaluate.evaluate_reconstruction``
 ablate      ``panosfm_graph.ablation.run_ablation``
+batch       ``panosfm_graph.batch.run_batch``
 view        ``panosfm_graph.viz.view_recording``
 ==========  ==============================================================
 
-Bad input ends with one line on stderr and exit status 2.
+Bad input ends with one line on stderr and exit status 2 (``batch``: bad input to the batch itself;
+a failing capture is a line in its index and makes the exit status 1).
 """
 from __future__ import annotations
 
@@ -57,6 +59,15 @@ def _add_config_flags(p: argparse.ArgumentParser) -> None:
                    help="solve incrementally, adding N frames per batch")
     g.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
                    help="any Config field, e.g. --set relations.floor=False --set graph.robust=cauchy")
+
+
+def _add_run_options(p: argparse.ArgumentParser, resume_help: str, spawn: bool = True) -> None:
+    """Adds the options of ``panosfm run`` after its positionals (shared with ``batch``, which has no --spawn)."""
+    p.add_argument("--resume", action="store_true", help=resume_help)
+    p.add_argument("--no-rerun", action="store_true", help="do not write recording.rrd")
+    if spawn:
+        p.add_argument("--spawn", action="store_true", help="open the rerun viewer live")
+    _add_config_flags(p)
 
 
 _TRUE, _FALSE = ("true", "1", "yes", "on"), ("false", "0", "no", "off")
@@ -206,6 +217,21 @@ def _cmd_ablate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _batch_install_hint() -> str:
+    from .batch import INSTALL_HINT
+
+    return f"Dask distributed ({INSTALL_HINT})"
+
+
+def _cmd_batch(args: argparse.Namespace) -> int:
+    from .batch import run_batch
+
+    result = run_batch(args.captures, args.out, config_from_args(args), scheduler=args.scheduler,
+                       workers=args.workers, resume=args.resume, rerun=not args.no_rerun)
+    print(result.report())
+    return 0 if result.ok else 1
+
+
 def _cmd_view(args: argparse.Namespace) -> int:
     from .viz import view_recording
 
@@ -227,10 +253,7 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("run", help="reconstruct a capture directory")
     r.add_argument("capture", help="capture directory (see capture-format.md)")
     r.add_argument("out", help="output directory (replaced atomically when the run completes)")
-    r.add_argument("--resume", action="store_true", help="reuse every cached stage whose inputs did not change")
-    r.add_argument("--no-rerun", action="store_true", help="do not write recording.rrd")
-    r.add_argument("--spawn", action="store_true", help="open the rerun viewer live")
-    _add_config_flags(r)
+    _add_run_options(r, "reuse every cached stage whose inputs did not change")
     r.set_defaults(func=_cmd_run)
 
     d = sub.add_parser("demo", help="synthesise a small capture and reconstruct it")
@@ -277,6 +300,20 @@ def build_parser() -> argparse.ArgumentParser:
                    help="'paper', 'factors', or a comma list of factor types, e.g. junction,floor")
     _add_config_flags(a)
     a.set_defaults(func=_cmd_ablate)
+
+    b = sub.add_parser("batch", help="reconstruct many captures on a local or an existing Dask cluster",
+                       description="Reconstruct many captures, each as `panosfm run` would, on a local Dask cluster "
+                                   "or an existing one (docs/batch.md). Needs " + _batch_install_hint() + ".")
+    b.add_argument("captures", nargs="+", metavar="CAPTURE", help="capture directories, or folders holding them")
+    b.add_argument("out", metavar="OUT", help="output folder: OUT/<capture>/ per capture, OUT/index.csv and .json")
+    b.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="an existing Dask scheduler, e.g. tcp://host:8786 (default: a local cluster on this machine)")
+    b.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="local cluster: N worker processes, one capture each at a time "
+                        "(default: one per core, at most one per capture)")
+    _add_run_options(b, "skip captures whose output is complete and current (and those that failed on "
+                        "their unchanged input); reuse cached stages for the others", spawn=False)
+    b.set_defaults(func=_cmd_batch)
 
     v = sub.add_parser("view", help="open a saved recording in the rerun viewer")
     v.add_argument("out", help="an output directory or a .rrd file")

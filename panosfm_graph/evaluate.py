@@ -38,6 +38,10 @@ from .export import poses_for_frames, read_colmap_text, read_lines_ply
 from .geometry import rotation_angle_deg  # noqa: F401  (re-exported: part of the evaluation API)
 
 log = logging.getLogger(__name__)
+# a registered frame is accurate when, after the similarity alignment, its centre lies within this share of the
+# true trajectory's diameter and its rotation within this many degrees (after that alignment's rotation)
+ACCURATE_CENTER_REL = 0.05
+ACCURATE_ROTATION_DEG = 1.0
 
 
 # --------------------------------------------------------------------------------------
@@ -406,7 +410,7 @@ def evaluate_reconstruction(capture: Capture | str | Path, recon_dir: str | Path
         "alignment": None, "trajectory_diameter_m": None,
         "center_error_m": _stats([]), "center_error_rel": _stats([]),
         "rotation_error_deg": _stats([]), "rotation_error_rotalign_deg": _stats([]),
-        "reprojection_px": None, "lines": None,
+        "reprojection_px": None, "lines": None, "accurate": 0,
         "run_frames": _run_frames(recon_dir),
     }
     if len(use) == 0:
@@ -426,7 +430,10 @@ def evaluate_reconstruction(capture: Capture | str | Path, recon_dir: str | Path
     out["trajectory_diameter_m"] = diam
     out["center_error_m"] = _stats(err)
     out["center_error_rel"] = _stats(err / diam) if diam > 0 else _stats([])
-    out["rotation_error_deg"] = _stats(rotation_angle_deg(R_al, gt.R_wc[use]))
+    rot = rotation_angle_deg(R_al, gt.R_wc[use])
+    out["rotation_error_deg"] = _stats(rot)
+    if diam > 0:
+        out["accurate"] = int(np.sum((err / diam <= ACCURATE_CENTER_REL) & (rot <= ACCURATE_ROTATION_DEG)))
     B = rotation_alignment(R_est[use], gt.R_wc[use])
     out["rotation_error_rotalign_deg"] = _stats(rotation_angle_deg(np.einsum("ij,njk->nik", B, R_est[use]), gt.R_wc[use]))
 
@@ -541,6 +548,9 @@ def format_metrics(m: dict) -> str:
     """Returns a readable table of :func:`evaluate_reconstruction`'s metrics (alignment and units stated)."""
     rows = [("frames registered", f"{m['registered']} / {m['frames']} ({m['registered_ratio']:.1%})"
              + (f"; the run took {m['run_frames']} frames" if m.get("run_frames") not in (None, m["frames"]) else ""))]
+    if m.get("alignment"):
+        rows.append(("frames accurate", f"{m.get('accurate', 0)} (centre within {ACCURATE_CENTER_REL:.0%} of the "
+                                        f"diameter, rotation within {ACCURATE_ROTATION_DEG:g} deg)"))
     al = m.get("alignment")
     if al:
         rows.append(("alignment", f"{al['method']}, {al['frames']} frames, scale {al['scale']:.4g}"))

@@ -150,6 +150,8 @@ def test_centre_noise_gives_expected_error(tmp_path, cap):
     assert abs(diam - 0.70) < 0.01
     assert abs(m["center_error_rel"]["mean"] - m["center_error_m"]["mean"] / diam) < 1e-12
     assert m["reprojection_px"]["mean"] > 0.9  # centimetre pose errors show in the reprojection
+    err_rel = np.linalg.norm(c - gt.centers, axis=1) / diam  # the similarity barely moves noisy centres
+    assert abs(m["accurate"] - int(np.sum(err_rel <= 0.05))) <= 1  # 5 % of 0.70 m: 3.5 sigma
 
 
 def test_one_rotated_frame_gives_its_angle(tmp_path, cap):
@@ -158,6 +160,8 @@ def test_one_rotated_frame_gives_its_angle(tmp_path, cap):
     R[5] = Rotation.from_rotvec(np.radians(2.0) * np.array([0.6, 0.0, 0.8])).as_matrix() @ R[5]
     m = evaluate_reconstruction(cap, _write(tmp_path / "rec", cap, R, gt.centers))
     assert abs(m["rotation_error_deg"]["max"] - 2.0) < 1e-6  # centres exact: the similarity is the identity
+    assert m["accurate"] == N_CAMS - 1  # the frame turned by 2 degrees (more than 1) is not accurate
+    assert "frames accurate" in format_metrics(m)
     assert m["rotation_error_deg"]["median"] < 1e-6
     assert abs(m["rotation_error_rotalign_deg"]["max"] - 2.0) < 0.1
 
