@@ -7,7 +7,7 @@ from bench import _medians, capture_dir, format_bench  # noqa: E402
 
 
 def _run(reg, centre, reproj):
-    return {"wall_s": 1.0, "metrics": {"registered_share": reg, "center_error_rel": {"median": centre},
+    return {"wall_s": 1.0, "metrics": {"registered_share": reg, "accurate_share": reg / 2, "center_error_rel": {"median": centre},
                                        "rotation_error_rotalign_deg": {"median": 0.1},
                                        "reprojection_px": {"mean": reproj},
                                        "lines": {"distance_m": {"median": 0.1}, "recovered_share": 0.5}}}
@@ -25,7 +25,7 @@ def test_medians_over_seeds_skip_failures():
     assert med["office"]["panosfm"]["captures"] == 1 and med["office"]["panosfm"]["centre"] == 0.01
     md = format_bench({"date": "d", "machine": "m", "frames": 3, "size": [9, 6], "scenes": runs,
                        "median_over_seeds": med})
-    assert "| living | panosfm | 3 (1 failed) | 70.0 % | 6.00 |" in md
+    assert "| living | panosfm | 3 (1 failed) | 70.0 % | 35.0 % | 6.00 |" in md
     assert "| living#2 | panosfm | failed: boom |" in md
 
 

@@ -105,7 +105,7 @@ def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peer
 
 
 # the metrics tabulated, as paths into ``evaluate_reconstruction``'s dictionary
-METRICS = {"registered": ("registered_share",), "centre": ("center_error_rel", "median"),
+METRICS = {"registered": ("registered_share",), "accurate": ("accurate_share",), "centre": ("center_error_rel", "median"),
            "rotation": ("rotation_error_rotalign_deg", "median"), "reprojection": ("reprojection_px", "mean"),
            "lines": ("lines", "distance_m", "median"), "recovered": ("lines", "recovered_share")}
 
@@ -138,7 +138,9 @@ def _score(rec: Path, cap: Path, code: int, secs: float, err: str, evaluate) -> 
     r["seconds"] = summary.get("seconds", {})
     r["peak_memory_mb"] = summary.get("peak_memory_mb")
     r["metrics"] = m = evaluate(cap, rec)
-    m["registered_share"] = m["registered"] / (m.get("run_frames") or m["frames"])  # of the frames the run took
+    taken = m.get("run_frames") or m["frames"]
+    m["registered_share"] = m["registered"] / taken  # of the frames the run took
+    m["accurate_share"] = m.get("accurate", 0) / taken  # rotation <= 1 deg, centre <= 5 % of the diameter
     return r
 
 
@@ -187,14 +189,15 @@ def format_bench(record: dict) -> str:
     med = record.get("median_over_seeds")
     if med:
         rows += ["", "Median over the captures of each scene:", "",
-                 "| scene | method | captures | registered | centre err. median (% diam.) | rot. err. (deg) "
-                 "| corner reproj. mean (px) | line-surface median (m) |", "|" + "---|" * 8]
+                 "| scene | method | captures | registered | accurate | centre err. median (% diam.) | rot. err. (deg) "
+                 "| corner reproj. mean (px) | line-surface median (m) |", "|" + "---|" * 9]
         for scene, methods in med.items():
             for method, v in methods.items():
                 reg = v["registered"]
                 cen = v["centre"]
                 rows.append(f"| {scene} | {method} | {v['captures']} ({v['failed']} failed) "
                             f"| {f(None if reg is None else 100 * reg, '.1f')} % "
+                            f"| {f(None if v['accurate'] is None else 100 * v['accurate'], '.1f')} % "
                             f"| {f(None if cen is None else 100 * cen, '.2f')} | {f(v['rotation'], '.3f')} "
                             f"| {f(v['reprojection'], '.2f')} | {f(v['lines'], '.3f')} |")
     return "\n".join(rows)
