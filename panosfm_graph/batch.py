@@ -71,6 +71,7 @@ from typing import Callable, Iterable, Sequence
 from . import __version__
 from .config import Config
 from .errors import InputError
+from .export import ensure_writable_dir
 
 log = logging.getLogger("panosfm.batch")
 
@@ -471,12 +472,7 @@ def run_batch(captures: Iterable[str | Path], out: str | Path, config: Config = 
     names = output_names(paths)
     if out.exists() and not out.is_dir():
         raise InputError("output path exists and is not a directory", out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise InputError(f"cannot create the output directory ({e.strerror})", out) from None
-    if not os.access(out, os.W_OK | os.X_OK):
-        raise InputError("output directory is not writable", out)
+    ensure_writable_dir(out, "output directory")
 
     key = run_key(config, rerun, views)
     previous = {r.get("capture"): r for r in read_index(out)} if resume else {}

@@ -555,6 +555,17 @@ def _fsync_dir(d: Path) -> None:
             os.close(fd)
 
 
+
+def ensure_writable_dir(d: Path, name: str) -> None:
+    """Creates directory ``d`` (and its parents) if needed; ``InputError`` naming it ``name`` when that fails or
+    it is not writable."""
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError(f"cannot create the {name} ({e.strerror})", d) from None
+    if not os.access(d, os.W_OK | os.X_OK):
+        raise InputError(f"{name} is not writable", d)
+
 def check_output_dir(out_dir: str | Path, keep: tuple[str, ...] = ()) -> Path:
     """Returns the absolute ``out_dir`` after checking a result can be written there.
 
@@ -567,12 +578,7 @@ def check_output_dir(out_dir: str | Path, keep: tuple[str, ...] = ()) -> Path:
     parent = out_dir.parent
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError("output path exists and is not a directory", out_dir)
-    try:
-        parent.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise InputError(f"cannot create the output's parent directory ({e.strerror})", parent) from None
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise InputError("output's parent directory is not writable", parent)
+    ensure_writable_dir(parent, "output's parent directory")
     recover_output_dir(out_dir, keep)
     if out_dir.is_dir() and not _looks_like_result(out_dir, keep):
         raise InputError("output directory exists, is not empty and is not a panosfm reconstruction; refusing to replace it", out_dir)
