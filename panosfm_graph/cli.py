@@ -5,7 +5,7 @@ command     Python function
 ==========  ==============================================================
 run         ``panosfm_graph.pipeline.run_pipeline``
 demo        ``panosfm_graph.pipeline.run_demo``
-synth       ``panosfm_graph.synth.synthesize``
+synth       ``panosfm_graph.synth.synthesize``; with ``--panorama`` ``panosfm_graph.synth.cut_spin``
 inspect     ``panosfm_graph.capture.inspect_capture``
 eval        ``panosfm_graph.evaluate.evaluate_reconstruction``
 ablate      ``panosfm_graph.ablation.run_ablation``
@@ -178,12 +178,35 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _or(value, default):
+    return default if value is None else value
+
+
 def _cmd_synth(args: argparse.Namespace) -> int:
+    scene_only = {"--scene": args.scene, "--texture": args.texture, "--blur": args.blur,
+                  "--noise": args.noise, "--sway": args.sway, "--no-gt-maps": args.no_gt_maps or None}
+    pano_only = {"--layout": args.layout, "--hfov": args.hfov, "--wobble": args.wobble, "--imu-noise": args.imu_noise}
+    if args.panorama is not None:
+        given = [k for k, v in scene_only.items() if v is not None]
+        if given:
+            raise InputError(f"{', '.join(given)}: only for synthetic scenes, not with --panorama")
+        from .synth import cut_spin
+
+        extra = {k: v for k, v in dict(hfov_deg=args.hfov, wobble_deg=args.wobble, imu_noise_deg=args.imu_noise,
+                                       turn_deg=args.turn).items() if v is not None}
+        path = cut_spin(args.panorama, args.out, n_frames=_or(args.frames, 240), size=_or(args.size, (640, 360)),
+                        seed=args.seed, imu_drift_deg=args.imu_drift, layout=args.layout, **extra)
+        print(f"wrote {path}")
+        return 0
+    given = [k for k, v in pano_only.items() if v is not None]
+    if given:
+        raise InputError(f"{', '.join(given)}: only with --panorama")
     from .synth import synthesize
 
-    path = synthesize(args.out, scene=args.scene, n_frames=args.frames, size=args.size, seed=args.seed,
-                      imu_drift_deg=args.imu_drift, turn_deg=args.turn, texture=args.texture, sway_m=args.sway,
-                      blur=args.blur, noise=args.noise, gt_maps=not args.no_gt_maps)
+    path = synthesize(args.out, scene=_or(args.scene, "living"), n_frames=_or(args.frames, 300),
+                      size=_or(args.size, (960, 540)), seed=args.seed, imu_drift_deg=args.imu_drift,
+                      turn_deg=_or(args.turn, 380.0), texture=_or(args.texture, 1.0), sway_m=_or(args.sway, 0.0),
+                      blur=_or(args.blur, 0.0), noise=_or(args.noise, 0.0), gt_maps=not args.no_gt_maps)
     print(f"wrote {path}")
     return 0
 
@@ -266,19 +289,34 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_flags(d)
     d.set_defaults(func=_cmd_demo)
 
-    s = sub.add_parser("synth", help="write a synthetic capture with ground truth")
+    s = sub.add_parser("synth", help="write a synthetic capture with ground truth (a box room, or cut from a panorama)",
+                       description="Write a synthetic spin capture with ground truth: ray-cast in a box room "
+                                   "(--scene), or cut from a gravity-aligned equirectangular panorama (--panorama: "
+                                   "rotation only, every frame shares the panorama's centre).")
     s.add_argument("out")
-    s.add_argument("--scene", default="living", help="living, bedroom, office, random, ...")
-    s.add_argument("--frames", type=int, default=300)
-    s.add_argument("--size", type=_parse_size, default=(960, 540), help="WxH, e.g. 960x540")
+    s.add_argument("--scene", default=None, help="living (default), bedroom, office, random, ...")
+    s.add_argument("--panorama", default=None, metavar="PANO",
+                   help="cut the spin from this equirectangular image (2:1, horizon on the middle row) instead")
+    s.add_argument("--layout", default=None, metavar="JSON",
+                   help="with --panorama: the room's PanoAnnotator layout, for ground-truth room lines")
+    s.add_argument("--frames", type=int, default=None, help="number of frames (default 300; 240 with --panorama)")
+    s.add_argument("--size", type=_parse_size, default=None,
+                   help="WxH, e.g. 960x540 (default 960x540; 640x360 with --panorama)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--imu-drift", type=float, default=3.0, metavar="DEG", help="IMU heading drift over the turn")
-    s.add_argument("--turn", type=float, default=380.0, metavar="DEG", help="how far the person turns")
-    s.add_argument("--texture", type=float, default=1.0, help="surface texture strength (0 = textureless)")
-    s.add_argument("--blur", type=float, default=0.0, metavar="PX", help="motion blur length")
-    s.add_argument("--noise", type=float, default=0.0, help="image noise sigma (grey levels)")
-    s.add_argument("--sway", type=float, default=0.0, metavar="M",
-                   help="how far the spin departs from a circle (stand point wandering, arm varying), metres RMS")
+    s.add_argument("--imu-noise", type=float, default=None, metavar="DEG",
+                   help="with --panorama: IMU noise per 100 Hz sample, RMS (default 0.3)")
+    s.add_argument("--hfov", type=float, default=None, metavar="DEG",
+                   help="with --panorama: horizontal field of view (default 65)")
+    s.add_argument("--wobble", type=float, default=None, metavar="DEG",
+                   help="with --panorama: pitch wobble amplitude, roll half of it (default 2.5)")
+    s.add_argument("--turn", type=float, default=None, metavar="DEG", help="how far the person turns (default 380)")
+    s.add_argument("--texture", type=float, default=None, help="surface texture strength (default 1; 0 = textureless)")
+    s.add_argument("--blur", type=float, default=None, metavar="PX", help="motion blur length (default 0)")
+    s.add_argument("--noise", type=float, default=None, help="image noise sigma (grey levels, default 0)")
+    s.add_argument("--sway", type=float, default=None, metavar="M",
+                   help="how far the spin departs from a circle (stand point wandering, arm varying), metres RMS "
+                        "(default 0)")
     s.add_argument("--no-gt-maps", action="store_true", help="skip per-frame ground-truth normals and depth")
     s.set_defaults(func=_cmd_synth)
 

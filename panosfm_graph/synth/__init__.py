@@ -5,15 +5,18 @@ format of ``capture-format.md`` (frames, camera.json, frames.csv, imu.csv and
 ground_truth/). The pieces are usable alone: :func:`make_scene` /
 :data:`SCENES` (box rooms), :func:`spin_trajectory` (ground-truth poses),
 :func:`imu_stream` (drifting IMU attitude), :func:`render_frame` (colour,
-depth, normals of one view).
+depth, normals of one view). ``cut_spin(panorama, out_dir)`` writes a
+rotation-only spin capture cut from an equirectangular panorama (:mod:`.panorama`).
 """
 from .scenes import SCENES, Faces, Scene, make_scene, scene_from_json, yaw_matrix
 from .trajectory import SpinParams, imu_stream, spin_params, spin_pose, spin_trajectory
 from .render import intrinsics, raycast, render_frame
 from .writer import frame_name, synthesize
+from .panorama import cut_spin, read_layout, read_panorama, render_view
 
 __all__ = [
     "SCENES", "Faces", "Scene", "make_scene", "scene_from_json", "yaw_matrix",
     "SpinParams", "imu_stream", "spin_params", "spin_pose", "spin_trajectory",
     "intrinsics", "raycast", "render_frame", "frame_name", "synthesize",
+    "cut_spin", "read_layout", "read_panorama", "render_view",
 ]

@@ -135,14 +135,21 @@ def spin_trajectory(scene: Scene, n_frames: int, seed: int = 0, turn_deg: float 
 def imu_stream(scene: Scene, n_frames: int, seed: int = 0, turn_deg: float = 380.0, fps: float = 30.0,
                imu_drift_deg: float = 3.0, noise_deg: float = 0.1, rate_hz: float = 100.0, sway_m: float = 0.0
                ) -> tuple[np.ndarray, np.ndarray]:
-    """Returns (timestamps (N,), R_wc (N, 3, 3)): the drifting IMU attitude at ``rate_hz``.
+    """Returns (timestamps (N,), R_wc (N, 3, 3)): the drifting IMU attitude at ``rate_hz`` of the scene's spin
+    (:func:`imu_attitude`)."""
+    p = spin_params(scene, n_frames, seed, turn_deg, fps, sway_m)
+    return imu_attitude(p, n_frames, fps, seed, imu_drift_deg, noise_deg, rate_hz)
+
+
+def imu_attitude(p: SpinParams, n_frames: int, fps: float = 30.0, seed: int = 0, imu_drift_deg: float = 3.0,
+                 noise_deg: float = 0.1, rate_hz: float = 100.0) -> tuple[np.ndarray, np.ndarray]:
+    """Returns (timestamps (N,), R_wc (N, 3, 3)): the IMU attitude of spin ``p`` at ``rate_hz``.
 
     Attitude = Rz(drift(t)) @ R_wc_true(t) @ noise, with drift growing
     linearly from 0 at the first frame to ``imu_drift_deg`` at the last frame
     and white rotation noise of ``noise_deg`` RMS angle. The stream starts
     0.05 s before the first frame and ends at least 0.05 s after the last.
     """
-    p = spin_params(scene, n_frames, seed, turn_deg, fps, sway_m)
     t_last = (n_frames - 1) / float(fps)
     dt = 1.0 / rate_hz
     ts = np.arange(-0.05, t_last + 0.05 + dt, dt)
