@@ -42,6 +42,7 @@ log = logging.getLogger(__name__)
 # true trajectory's diameter and its rotation within this many degrees (after that alignment's rotation)
 ACCURATE_CENTER_REL = 0.05
 ACCURATE_ROTATION_DEG = 1.0
+ZERO_BASELINE_M = 1e-6  # true centres closer than this: a zero-baseline capture, rotations only
 
 
 # --------------------------------------------------------------------------------------
@@ -419,12 +420,15 @@ def evaluate_reconstruction(capture: Capture | str | Path, recon_dir: str | Path
                                      min_gt_edge_m, sample_step_m)
         return out
 
+    diam = float(pdist(gt.centers[has_gt]).max()) if has_gt.sum() >= 2 else 0.0
+    if has_gt.sum() >= 2 and diam <= ZERO_BASELINE_M:
+        return _zero_baseline_metrics(out, R_est[use], gt.R_wc[use], c_est[use])
+
     # -- trajectory -------------------------------------------------------------------
     al = similarity_alignment(c_est[use], gt.centers[use], R_est[use], gt.R_wc[use])
     s, A, t = al["scale"], al["R"], al["t"]
     c_al = s * c_est[use] @ A.T + t
     R_al = np.einsum("ij,njk->nik", A, R_est[use])
-    diam = float(pdist(gt.centers[has_gt]).max()) if has_gt.sum() >= 2 else 0.0
     err = np.linalg.norm(c_al - gt.centers[use], axis=1)
     out["alignment"] = {"method": al["method"], "frames": int(len(use)), "scale": s, "R": A, "t": t}
     out["trajectory_diameter_m"] = diam
@@ -444,6 +448,22 @@ def evaluate_reconstruction(capture: Capture | str | Path, recon_dir: str | Path
     # -- lines --------------------------------------------------------------------------
     out["lines"] = _line_metrics(recon_dir, gt, (s, A, t), edge_dist_m, edge_angle_deg, edge_cover_frac,
                                  min_gt_edge_m, sample_step_m)
+    return out
+
+
+def _zero_baseline_metrics(out: dict, R_est: np.ndarray, R_gt: np.ndarray, c_est: np.ndarray) -> dict:
+    """Returns the metrics of a capture whose true centres coincide (a spin cut from a panorama): rotations after
+    the rotation-only alignment, and how far apart the estimated centres lie (they should not: no invented
+    translation). Centre, corner and line metrics need a baseline and stay empty."""
+    B = rotation_alignment(R_est, R_gt)
+    rot = rotation_angle_deg(np.einsum("ij,njk->nik", B, R_est), R_gt)
+    out["zero_baseline"] = True
+    out["alignment"] = {"method": "rotation only (true centres coincide: zero baseline)", "frames": len(R_est),
+                        "scale": float("nan"), "R": B, "t": np.zeros(3)}
+    out["trajectory_diameter_m"] = 0.0
+    out["rotation_error_deg"] = out["rotation_error_rotalign_deg"] = _stats(rot)
+    out["estimated_centre_spread"] = float(pdist(c_est).max()) if len(c_est) >= 2 else 0.0
+    out["accurate"] = int(np.sum(rot <= ACCURATE_ROTATION_DEG))
     return out
 
 
@@ -548,6 +568,14 @@ def format_metrics(m: dict) -> str:
     """Returns a readable table of :func:`evaluate_reconstruction`'s metrics (alignment and units stated)."""
     rows = [("frames registered", f"{m['registered']} / {m['frames']} ({m['registered_ratio']:.1%})"
              + (f"; the run took {m['run_frames']} frames" if m.get("run_frames") not in (None, m["frames"]) else ""))]
+    if m.get("zero_baseline"):
+        rr = m["rotation_error_rotalign_deg"]
+        rows += [("zero baseline", "the true centres coincide: rotations only (no centre, corner or line metric)"),
+                 ("frames accurate", f"{m.get('accurate', 0)} (rotation within {ACCURATE_ROTATION_DEG:g} deg)"),
+                 ("rotation error (deg, rot-only)", f"median {_f(rr['median'])}  max {_f(rr['max'])}"),
+                 ("estimated centres' spread", f"{_f(m['estimated_centre_spread'])} (model units; 0 = none invented)")]
+        w = max(len(r[0]) for r in rows)
+        return "\n".join(f"{k.ljust(w)}  {v}" for k, v in rows)
     if m.get("alignment"):
         rows.append(("frames accurate", f"{m.get('accurate', 0)} (centre within {ACCURATE_CENTER_REL:.0%} of the "
                                         f"diameter, rotation within {ACCURATE_ROTATION_DEG:g} deg)"))

@@ -221,3 +221,27 @@ def test_cut_real_bedroom(tmp_path):
     img = cap.frame(0)
     assert img.shape[:2] == (180, 320) and img.std() > 10  # a real image, not a blank
     assert np.all(np.isfinite(cap.ground_truth.R_wc))
+
+
+def test_eval_of_a_zero_baseline_capture_scores_rotations_only(capture, tmp_path):
+    """The true centres coincide: eval aligns rotations only, counts frames within 1 degree as accurate and
+    reports how far apart the estimated centres lie (a translation the pipeline would have invented)."""
+    from scipy.spatial.transform import Rotation
+
+    from panosfm_graph.evaluate import evaluate_reconstruction, format_metrics
+    from panosfm_graph.export import write_colmap_text
+
+    cap = load_capture(capture)
+    gt = cap.ground_truth
+    turn = Rotation.from_euler("z", 30, degrees=True).as_matrix()  # any common turn is aligned away
+    R = np.einsum("ij,njk->nik", turn, gt.R_wc)
+    R[2] = Rotation.from_rotvec(np.radians(2.0) * np.array([0.0, 0.6, 0.8])).as_matrix() @ R[2]
+    c = np.zeros((len(R), 3))
+    c[5] = [0.0, 0.3, 0.4]  # one invented translation
+    write_colmap_text(tmp_path / "rec" / "sparse", cap.camera, cap.frame_names, R, c, np.ones(len(R), bool))
+    m = evaluate_reconstruction(cap, tmp_path / "rec")
+    assert m["zero_baseline"] and m["trajectory_diameter_m"] == 0.0
+    assert m["accurate"] == len(R) - 1  # the frame turned by 2 degrees
+    assert m["rotation_error_rotalign_deg"]["median"] < 0.2
+    assert abs(m["estimated_centre_spread"] - 0.5) < 1e-9
+    assert m["reprojection_px"] is None and "zero baseline" in format_metrics(m)
