@@ -48,6 +48,7 @@ class ManhattanConfig:
     # ... and < this from the other two (no segment compatible with two directions)
     iterations: int = 3  # alternate extraction / labelling / rotation refinement (10: 0.0764 -> 0.0757 deg only)
     vertical_search_deg: float = 10.0  # the vertical peak is searched this close to gravity
+    vertical_max_deg: float = 5.0  # a refined vertical farther than this from gravity is replaced by it (0: off)
     min_segments: int = 20  # fewer (Manhattan) segments than this: TooFewLinesError
 
 

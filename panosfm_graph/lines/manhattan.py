@@ -90,6 +90,16 @@ def _orthonormalise(D: np.ndarray) -> np.ndarray:
     return R
 
 
+def gravity_aligned(D: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """Returns the Manhattan directions (rows) with the vertical set to gravity ``g`` and x the old x made
+    horizontal (ours: the IMU's gravity is trusted over a vertical that the lines pull far off it)."""
+    x = D[0] - (D[0] @ g) * g
+    if np.linalg.norm(x) < 1e-9:  # the old x was vertical: take the old y
+        x = D[1] - (D[1] @ g) * g
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(g, x), g])
+
+
 def align_to(mf: ManhattanFrame, reference: ManhattanFrame) -> ManhattanFrame:
     """Returns ``mf`` with its horizontal axes permuted / negated to match ``reference`` best.
 
@@ -158,6 +168,11 @@ def manhattan_frame(
     D = _refine_frame(normals, weights, D, np.cos(np.radians(cfg.label_angle_deg)))
     if D[2] @ g < 0:  # keep the vertical pointing up, stay right-handed
         D = D * np.array([[-1.0], [1.0], [-1.0]])
+    tilt = np.degrees(np.arccos(np.clip(D[2] @ g, -1.0, 1.0)))
+    if cfg.vertical_max_deg > 0 and tilt > cfg.vertical_max_deg:
+        D = gravity_aligned(D, g)
+        log.warning("Manhattan vertical %.1f deg off the IMU's gravity (at most %.1f): slanted or non-Manhattan "
+                    "lines; the vertical is taken from gravity", tilt, cfg.vertical_max_deg)
     mf = ManhattanFrame(directions=D)
     if reference is not None:
         mf = align_to(mf, reference)
