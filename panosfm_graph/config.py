@@ -108,9 +108,11 @@ class TrackingConfig:
     # a match farther than this (px) from its partner's vanishing-point line, after the pair's common image shift, is a
     # jump to a neighbouring line and is dropped (0: off); see docs/decisions.md#line-jumps
     jump_px: float = 3.0
+    jump_ref_deg: float = 2.0  # ... times a pair's turn / this where more (0: fixed); see docs/decisions.md#merge-gap-and-jump-threshold-in-degrees
     # tracks of one axis that end and start at most this many frames apart are joined when their fits agree (0: off);
     # see docs/decisions.md#fragment-merging
     merge_gap_frames: int = 3
+    merge_gap_deg: float = 5.5  # ... and no more median frame steps than fit this turn (deg; at least 1; 0: frames only)
     merge_tol_px: float = 2.0  # ... their interpretation-plane angles, fitted linearly over frames, agree within this
     merge_overlap: bool = False  # ... and tracks whose spans overlap (two pieces of one line followed side by side)
     merge_image_px: float = 3.0  # ... and each fit passes this close (px) to the other track's nearest segment (0: off)

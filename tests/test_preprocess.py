@@ -6,6 +6,7 @@ depend on the synthetic generator; the metrics are those of
 """
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -720,6 +721,46 @@ def test_a_match_never_jumps_to_the_neighbouring_line():
         same = (t0 >= 0) & (t0 == t1)
         assert same[:12].all()  # the other lines match either way
         assert (t0[12] >= 0 and t0[12] == t1[13]) == mixed, (jump, t0[12:], t1[12:])
+
+
+def test_the_jump_test_allows_the_parallax_of_a_wider_turn():
+    """TrackingConfig.jump_ref_deg: a line's own parallax grows with the turn between two frames. Frames 4 degrees
+    apart (a spin of 90 frames per turn), one line 4 px off where the rotation puts it: a true match that the fixed
+    3 px (jump_ref_deg 0) drops and 3 px * 4 / 2 keeps; pairs within the paper's 2 degrees keep 3 px."""
+    from panosfm_graph.lines.tracking import _warp, jump_threshold, rotation_homography
+    from panosfm_graph.lines.tracking import track_lines as track_segments
+
+    seg, labels, n = _shifted_pair(np.array([0.0, 0.0]))
+    K = np.array([[300.0, 0, 160], [0, 300.0, 90], [0, 0, 1]])
+    R = np.stack([np.eye(3), Rotation.from_euler("y", 4.0, degrees=True).as_matrix()])
+    e = seg.endpoints.astype(np.float64)
+    e1 = _warp(rotation_homography(K, R[0], R[1]), e[:n])
+    e1[7] += [4.0, 0.0, 4.0, 0.0]  # the vertical at x=110: 4 px of its own parallax
+    seg = dataclasses.replace(seg, endpoints=np.concatenate([e[:n], e1]).astype(np.float32))
+    directions = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]])  # label 0: image x, label 2: image y
+    for ref, kept in ((2.0, True), (0.0, False)):
+        cfg = with_overrides(Config(), tracking={"jump_ref_deg": ref})
+        assert jump_threshold(R[0], R[1], cfg.tracking) == pytest.approx(6.0 if ref else 3.0, rel=1e-6)
+        tracks = track_segments(seg, labels, K, R, cfg.tracking, image_size=(320, 180), directions=directions)
+        t0, t1 = tracks.track_of[:n], tracks.track_of[n:]
+        assert ((t0 >= 0) & (t0 == t1))[np.r_[0:7, 8:12]].all()  # the other lines match either way
+        assert (t0[7] >= 0 and t0[7] == t1[7]) == kept, (ref, t0[7], t1[7])
+    near = Rotation.from_euler("y", 1.5, degrees=True).as_matrix()
+    assert jump_threshold(np.eye(3), near, Config().tracking) == pytest.approx(3.0)
+
+
+def test_the_merge_gap_holds_a_turn_at_any_spin_speed():
+    """TrackingConfig.merge_gap_deg: merge_fragments crosses merge_gap_frames (3) at 300 frames per turn, fewer
+    frames where they turn further than 5.5 degrees (2 at 150 per turn, 1 at 100 or fewer), never more."""
+    from panosfm_graph.lines.tracking import merge_gap
+
+    def spin(per_turn: int) -> np.ndarray:
+        yaw = np.arange(per_turn) * 360.0 / per_turn
+        return Rotation.from_euler("y", yaw[:, None], degrees=True).as_matrix()
+
+    assert [merge_gap(spin(k), 3, 5.5) for k in (600, 300, 270, 150, 100, 60)] == [3, 3, 3, 2, 1, 1]
+    assert merge_gap(spin(150), 3, 0.0) == 3 and merge_gap(spin(150), 0, 5.5) == 0
+    assert merge_gap(spin(1), 3, 5.5) == 3  # one frame: no step
 
 
 def test_merge_needs_the_join_to_hold_in_the_image():
