@@ -36,8 +36,6 @@ import hashlib
 import json
 import logging
 import os
-import shutil
-import tempfile
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -45,10 +43,9 @@ import cv2
 import numpy as np
 
 from ..errors import InputError
-from ..geometry import matrix_to_quat_wxyz
 from ..progress import progress
 from .trajectory import SpinParams, imu_attitude, spin_params, spin_pose
-from .writer import PNG_PARAMS, _fmt, _write_csv, frame_name
+from .writer import PNG_PARAMS, atomic_capture_dir, frame_name, write_capture_tables
 
 log = logging.getLogger("panosfm")
 
@@ -274,30 +271,7 @@ def cut_spin(panorama_path: str | os.PathLike, out: str | os.PathLike, *, n_fram
     t_imu, R_imu = imu_attitude(p, n_frames, fps, seed, imu_drift_deg, imu_noise_deg, IMU_RATE_HZ)
     center = np.array([0.0, 0.0, lay["camera_height"] if lay else 0.0])
 
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
-    except OSError as e:
-        raise InputError(f"cannot create the output directory ({e.strerror})", out) from None
-    try:
-        (tmp / "frames").mkdir()
-        gt = tmp / "ground_truth"
-        gt.mkdir()
-        names = [frame_name(i) for i in range(n_frames)]
-        w, h = size
-        (tmp / "camera.json").write_text(json.dumps(
-            {"model": "PINHOLE", "width": w, "height": h,
-             "params": [K[0, 0], K[1, 1], K[0, 2], K[1, 2]], "fps": fps}, indent=1) + "\n")
-        _write_csv(tmp / "frames.csv", "file,timestamp_s", [f"{n},{t:.9g}" for n, t in zip(names, ts)])
-        _write_csv(tmp / "imu.csv", "timestamp_s,qw,qx,qy,qz",
-                   _fmt(np.column_stack([t_imu, matrix_to_quat_wxyz(R_imu)])))
-        poses = np.column_stack([matrix_to_quat_wxyz(R_wc), np.broadcast_to(center, (n_frames, 3))])
-        _write_csv(gt / "poses.csv", "file,qw,qx,qy,qz,tx,ty,tz", [f"{n},{r}" for n, r in zip(names, _fmt(poses))])
-        if lay is not None:
-            lines, labels = layout_lines(lay)
-            _write_csv(gt / "lines.csv", "x1,y1,z1,x2,y2,z2,label",
-                       [f"{r},{int(lab)}" for r, lab in zip(_fmt(lines), labels)])
-            (gt / "scene.json").write_text(json.dumps(_layout_scene(lay, Path(layout)), indent=1) + "\n")
+    with atomic_capture_dir(out) as tmp:
         pano_bytes = Path(panorama_path).read_bytes()
         settings = dict(panorama=Path(panorama_path).name, panorama_sha256=hashlib.sha256(pano_bytes).hexdigest(),
                         panorama_size=[int(pano.shape[1]), int(pano.shape[0])],
@@ -305,18 +279,15 @@ def cut_spin(panorama_path: str | os.PathLike, out: str | os.PathLike, *, n_fram
                         hfov_deg=float(hfov_deg), seed=seed, imu_drift_deg=float(imu_drift_deg),
                         imu_noise_deg=float(imu_noise_deg), wobble_deg=float(wobble_deg), turn_deg=float(turn_deg),
                         fps=float(fps))
-        (gt / "synth.json").write_text(json.dumps({"generator": "panosfm_graph.synth.panorama", **settings},
-                                                  indent=1) + "\n")
+        lines, labels = layout_lines(lay) if lay is not None else (None, None)
+        write_capture_tables(tmp, K, size, fps, ts, t_imu, R_imu, R_wc, center,
+                             {"generator": "panosfm_graph.synth.panorama", **settings}, lines, labels,
+                             _layout_scene(lay, Path(layout)) if lay is not None else None)
         padded, rays = _pad(pano), _camera_rays(K, size)
         for i in progress(range(n_frames), "cut frames"):
             img = render_view(pano, K, R_wc[i], size, _padded=padded, _rays=rays)
-            if not cv2.imwrite(str(tmp / "frames" / names[i]), img, PNG_PARAMS):
-                raise OSError(f"could not write {tmp / 'frames' / names[i]}")
-        if out.exists():
-            out.rmdir()  # empty (checked above)
-        os.rename(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    log.info("wrote panorama spin capture %s (%s, %d frames, %dx%d)", out, Path(panorama_path).name, n_frames, w, h)
+            path = tmp / "frames" / frame_name(i)
+            if not cv2.imwrite(str(path), img, PNG_PARAMS):
+                raise OSError(f"could not write {path}")
+    log.info("wrote panorama spin capture %s (%s, %d frames, %dx%d)", out, Path(panorama_path).name, n_frames, *size)
     return out

@@ -20,6 +20,7 @@ renamed into place at the end, so a failed run leaves nothing half-written.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 
@@ -28,6 +29,7 @@ import shutil
 import tempfile
 from concurrent.futures import as_completed
 from pathlib import Path
+from typing import Iterator
 
 import cv2
 import numpy as np
@@ -94,6 +96,52 @@ def _check_args(out: Path, scene: str, n_frames: int, size, workers: int, **nonn
         raise InputError("output path exists and is not an empty directory; choose another or remove it", out)
 
 
+@contextlib.contextmanager
+def atomic_capture_dir(out: Path) -> Iterator[Path]:
+    """Yields a temporary folder beside ``out`` that becomes ``out`` when the block completes (``out`` absent or
+    empty); on any error it is removed and ``out`` is left as it was."""
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    except OSError as e:
+        raise InputError(f"cannot create the output directory ({e.strerror})", out) from None
+    try:
+        yield tmp
+        if out.exists():
+            out.rmdir()  # empty (checked by the caller)
+        os.rename(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def write_capture_tables(root: Path, K: np.ndarray, size: tuple[int, int], fps: float, ts: np.ndarray,
+                         t_imu: np.ndarray, R_imu: np.ndarray, R_wc: np.ndarray, centers: np.ndarray, synth: dict,
+                         lines: np.ndarray | None = None, labels: np.ndarray | None = None,
+                         scene: dict | None = None) -> None:
+    """Writes a capture's tables (capture-format.md) under ``root``: camera.json, frames.csv, imu.csv and
+    ground_truth/ poses.csv, synth.json (the generator's settings), with ``lines`` lines.csv, with ``scene``
+    scene.json; makes the empty frames/ folder."""
+    (root / "frames").mkdir()
+    gt = root / "ground_truth"
+    gt.mkdir()
+    names = [frame_name(i) for i in range(len(ts))]
+    w, h = size
+    (root / "camera.json").write_text(json.dumps(
+        {"model": "PINHOLE", "width": w, "height": h,
+         "params": [K[0, 0], K[1, 1], K[0, 2], K[1, 2]], "fps": fps}, indent=1) + "\n")
+    _write_csv(root / "frames.csv", "file,timestamp_s", [f"{n},{t:.9g}" for n, t in zip(names, ts)])
+    _write_csv(root / "imu.csv", "timestamp_s,qw,qx,qy,qz", _fmt(np.column_stack([t_imu, matrix_to_quat_wxyz(R_imu)])))
+    poses = np.column_stack([matrix_to_quat_wxyz(R_wc), np.broadcast_to(centers, (len(ts), 3))])
+    _write_csv(gt / "poses.csv", "file,qw,qx,qy,qz,tx,ty,tz", [f"{n},{r}" for n, r in zip(names, _fmt(poses))])
+    if lines is not None:
+        _write_csv(gt / "lines.csv", "x1,y1,z1,x2,y2,z2,label",
+                   [f"{r},{int(lab)}" for r, lab in zip(_fmt(lines), labels)])
+    if scene is not None:
+        (gt / "scene.json").write_text(json.dumps(scene, indent=1) + "\n")
+    (gt / "synth.json").write_text(json.dumps(synth, indent=1) + "\n")
+
+
 def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int = 300,
                size: tuple[int, int] = (960, 540), seed: int = 0, *, imu_drift_deg: float = 3.0,
                turn_deg: float = 380.0, texture: float = 1.0, blur: float = 0.0, noise: float = 0.0,
@@ -123,38 +171,16 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
     t_imu, R_imu = imu_stream(sc, n_frames, seed=seed, turn_deg=turn_deg, fps=fps, imu_drift_deg=imu_drift_deg,
                               noise_deg=imu_noise_deg, sway_m=sway_m)
 
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
-    except OSError as e:
-        raise InputError(f"cannot create the output directory ({e.strerror})", out) from None
-    try:
-        (tmp / "frames").mkdir()
-        gt = tmp / "ground_truth"
-        gt.mkdir()
-        if gt_maps:
-            (gt / "normals").mkdir()
-            (gt / "depth").mkdir()
-        names = [frame_name(i) for i in range(n_frames)]
-        w, h = size
-        (tmp / "camera.json").write_text(json.dumps(
-            {"model": "PINHOLE", "width": w, "height": h,
-             "params": [K[0, 0], K[1, 1], K[0, 2], K[1, 2]], "fps": fps}, indent=1) + "\n")
-        _write_csv(tmp / "frames.csv", "file,timestamp_s", [f"{n},{t:.9g}" for n, t in zip(names, ts)])
-        q_imu = matrix_to_quat_wxyz(R_imu)
-        _write_csv(tmp / "imu.csv", "timestamp_s,qw,qx,qy,qz", _fmt(np.column_stack([t_imu, q_imu])))
-        q_gt = matrix_to_quat_wxyz(R_wc)
-        _write_csv(gt / "poses.csv", "file,qw,qx,qy,qz,tx,ty,tz",
-                   [f"{n},{r}" for n, r in zip(names, _fmt(np.column_stack([q_gt, centers])))])
-        lines, labels = sc.edges()
-        _write_csv(gt / "lines.csv", "x1,y1,z1,x2,y2,z2,label",
-                   [f"{r},{int(lab)}" for r, lab in zip(_fmt(lines), labels)])
-        (gt / "scene.json").write_text(json.dumps(sc.to_json(), indent=1) + "\n")
+    with atomic_capture_dir(out) as tmp:
         settings = dict(scene=scene, n_frames=n_frames, size=list(size), seed=seed, imu_drift_deg=imu_drift_deg,
                         imu_noise_deg=imu_noise_deg, turn_deg=turn_deg, texture=texture, blur=blur, noise=noise,
                         fps=fps, gt_maps=bool(gt_maps), sway_m=sway_m)
-        (gt / "synth.json").write_text(json.dumps({"generator": "panosfm_graph.synth", **settings}, indent=1) + "\n")
-
+        lines, labels = sc.edges()
+        write_capture_tables(tmp, K, size, fps, ts, t_imu, R_imu, R_wc, centers,
+                             {"generator": "panosfm_graph.synth", **settings}, lines, labels, sc.to_json())
+        if gt_maps:
+            (tmp / "ground_truth" / "normals").mkdir()
+            (tmp / "ground_truth" / "depth").mkdir()
         chunks = [list(range(i, min(i + CHUNK_FRAMES, n_frames))) for i in range(0, n_frames, CHUNK_FRAMES)]
         args = [(sc, K, R_wc[c[0]:c[-1] + 1], centers[c[0]:c[-1] + 1], c, size, texture, blur, noise, seed,
                  str(tmp), bool(gt_maps)) for c in chunks]
@@ -166,11 +192,5 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
                 futures = [ex.submit(_render_chunk, *a) for a in args]
                 for f in progress(as_completed(futures), "synth frames", total=len(futures)):
                     f.result()
-        if out.exists():
-            out.rmdir()  # empty (checked above)
-        os.rename(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    log.info("wrote synthetic capture %s (%s, %d frames, %dx%d)", out, scene, n_frames, w, h)
+    log.info("wrote synthetic capture %s (%s, %d frames, %dx%d)", out, scene, n_frames, *size)
     return out
