@@ -40,9 +40,7 @@ def pair_angle_deg(R_wc: np.ndarray, axis_angle_deg: float, axis_angle_steps: fl
     ``axis_angle_steps`` times the median angle between consecutive frames
     (ours): every frame is matched to its neighbours at any spin speed.
     """
-    if axis_angle_steps <= 0 or len(R_wc) < 2:
-        return float(axis_angle_deg)
-    return max(float(axis_angle_deg), axis_angle_steps * median_step_deg(R_wc))
+    return max(float(axis_angle_deg), max(axis_angle_steps, 0.0) * median_step_deg(R_wc))
 
 
 def median_step_deg(R_wc: np.ndarray) -> float:
@@ -60,8 +58,8 @@ def merge_gap(R_wc: np.ndarray, gap_frames: int, gap_deg: float) -> int:
     Ours: ``gap_frames`` (3) was set on spins of 300 frames per turn (1.2 degrees a step). Fewer frames per turn
     turn further across the same frame gap, and the fragments' fits, compared half-way across it, joined two lines
     (measured, bedroom, 150 frames per turn: a track holding two lines over 77 degrees, 18 % registered; with the
-    gap at 2 frames none: 83 %, 100 % with the jump threshold of :func:`jump_threshold`). So the gap holds at most the median frame steps that fit in ``gap_deg``, at least 1
-    (``gap_deg`` 0: ``gap_frames`` at any spin speed).
+    gap at 2 frames none: 83 %, 100 % with the jump threshold of :func:`jump_threshold`). So the gap holds at most
+    the median frame steps that fit in ``gap_deg``, at least 1 (``gap_deg`` 0: ``gap_frames`` at any spin speed).
     """
     if gap_frames < 1 or gap_deg <= 0:
         return gap_frames
