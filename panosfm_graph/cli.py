@@ -183,7 +183,7 @@ def _or(value, default):
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
-    scene_only = {"--scene": args.scene, "--texture": args.texture, "--blur": args.blur,
+    scene_only = {"--scene": args.scene, "--texture": args.texture, "--blur": args.blur, "--exposure": args.exposure,
                   "--noise": args.noise, "--sway": args.sway, "--no-gt-maps": args.no_gt_maps or None}
     pano_only = {"--layout": args.layout, "--hfov": args.hfov, "--wobble": args.wobble, "--imu-noise": args.imu_noise}
     if args.panorama is not None:
@@ -206,7 +206,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     path = synthesize(args.out, scene=_or(args.scene, "living"), n_frames=_or(args.frames, 300),
                       size=_or(args.size, (960, 540)), seed=args.seed, imu_drift_deg=args.imu_drift,
                       turn_deg=_or(args.turn, 380.0), texture=_or(args.texture, 1.0), sway_m=_or(args.sway, 0.0),
-                      blur=_or(args.blur, 0.0), noise=_or(args.noise, 0.0), gt_maps=not args.no_gt_maps)
+                      blur=_or(args.blur, 0.0), noise=_or(args.noise, 0.0), gt_maps=not args.no_gt_maps,
+                      exposure_s=_or(args.exposure, 0.0))
     print(f"wrote {path}")
     return 0
 
@@ -313,6 +314,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--turn", type=float, default=None, metavar="DEG", help="how far the person turns (default 380)")
     s.add_argument("--texture", type=float, default=None, help="surface texture strength (default 1; 0 = textureless)")
     s.add_argument("--blur", type=float, default=None, metavar="PX", help="motion blur length (default 0)")
+    s.add_argument("--exposure", type=float, default=None, metavar="S",
+                   help="exposure time: each frame blurs by it times the spin's angular speed (default 0: sharp)")
     s.add_argument("--noise", type=float, default=None, help="image noise sigma (grey levels, default 0)")
     s.add_argument("--sway", type=float, default=None, metavar="M",
                    help="how far the spin departs from a circle (stand point wandering, arm varying), metres RMS "

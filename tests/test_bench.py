@@ -43,3 +43,18 @@ def test_capture_names_are_shared_by_the_benchmarks():
     # tools/bench.py and tools/bench_tracking.py name captures alike, so one folder's captures serve the other
     assert capture_dir(Path("o"), "office", 300, (960, 540), 12) == Path("o/captures/office-300-960x540-s12")
     assert capture_dir(Path("o"), "living", 300, (960, 540), 0, 0.05).name == "living-300-960x540-s0-sway0.05"
+
+
+def test_speeds_summary_time_exponent():
+    """seconds = 0.1 * frames (linear) gives the exponent 1; quadratic seconds give 2; medians per speed kept."""
+    from bench import format_speeds, speeds_summary
+
+    def rec(n, power):
+        runs = {name: {"panosfm": {**_run(0.9, 0.01, 1.0), "wall_s": 0.1 * n ** power}} for name in ("living", "living#1")}
+        return {"scenes": runs, "median_over_seeds": _medians(runs, ["living"])}
+
+    lin = speeds_summary({n: rec(n, 1.0) for n in (60, 150, 600)})
+    assert abs(lin["time_exponent"] - 1.0) < 1e-9 and lin["seconds_median"][600] == 60.0
+    assert lin["by_frames"][150]["living"]["registered"] == 0.9
+    assert abs(speeds_summary({n: rec(n, 2.0) for n in (60, 600)})["time_exponent"] - 2.0) < 1e-9
+    assert "| 60 | living | 90.0 % | 45.0 % |" in format_speeds(lin)

@@ -2,6 +2,11 @@
 
     python tools/bench.py --scenes living,bedroom,office --frames 300 --size 960x540 --out bench/
     python tools/bench.py --peer none --seeds 3 --set linear.robust_iterations=5   # a setting, 3 captures per scene
+    python tools/bench.py --peer none --seeds 3 --frames 60,100,150,300,600 --out bench-speeds   # spin speeds
+
+With several ``--frames`` each spin speed is its own benchmark in ``OUT/f<N>`` and ``OUT/speeds.json`` /
+``speeds.md`` gather them: per speed and scene the medians, and how the time per capture grows with the
+frames (the exponent b of seconds ~ frames^b, fitted over the speeds).
 
 For each scene (and each of ``--seeds`` captures of it: the single-capture results of this
 pipeline swing a lot with small changes, so compare settings over several): synthesise a
@@ -35,21 +40,25 @@ def _run(cmd: list[str]) -> tuple[int, float, str]:
     return proc.returncode, time.perf_counter() - t0, (proc.stderr or "")[-2000:]
 
 
-def capture_dir(out: Path, scene: str, frames: int, size: tuple[int, int], seed: int, sway_m: float = 0.0) -> Path:
+def capture_dir(out: Path, scene: str, frames: int, size: tuple[int, int], seed: int, sway_m: float = 0.0,
+                exposure_s: float = 0.0) -> Path:
     """Returns where a benchmark keeps the synthetic capture of these settings (``OUT/captures/NAME``): one name
     for every benchmark, so that captures can be linked from one output folder into another."""
-    return out / "captures" / (f"{scene}-{frames}-{size[0]}x{size[1]}-s{seed}" + (f"-sway{sway_m:g}" if sway_m > 0 else ""))
+    return out / "captures" / (f"{scene}-{frames}-{size[0]}x{size[1]}-s{seed}" + (f"-sway{sway_m:g}" if sway_m > 0 else "")
+                               + (f"-exp{exposure_s:g}" if exposure_s > 0 else ""))
 
 
 def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peers: list[str],
           seed: int = 0, reuse_peer: bool = False, seeds: int = 1, settings: list[str] = (),
-          resume: bool = False, sway_m: float = 0.0, drop_captures: bool = False, every: int = 1) -> dict:
+          resume: bool = False, sway_m: float = 0.0, drop_captures: bool = False, every: int = 1,
+          exposure_s: float = 0.0) -> dict:
     """Returns the benchmark record (also written to ``out/bench.json`` and ``out/bench.md``).
 
     With ``drop_captures`` each capture is deleted once its runs are scored (1.6-1.7 GB each at 300 frames
     960x540, most of it the ground truth's depth and normal maps; the synthesis is deterministic, so a later
     ``--resume`` run writes it again). With ``every`` > 1 panosfm takes every k-th frame of each capture
     (``panosfm run --every``: a spin of fewer frames per turn) and its registered share is of the frames taken.
+    ``exposure_s`` > 0 renders each frame's motion blur (``panosfm synth --exposure``).
     """
     from panosfm_graph.capture import load_capture
     from panosfm_graph.evaluate import evaluate_reconstruction
@@ -63,12 +72,14 @@ def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peer
     record["settings"] = list(settings)
     record["sway_m"] = sway_m
     record["every"] = every
+    record["exposure_s"] = exposure_s
     for k, scene, j in runs:
         name = scene if j == 0 else f"{scene}#{j}"  # capture j of the scene: seed + k + 10 j
-        cap = capture_dir(out, scene, frames, size, seed + k + 10 * j, sway_m)
+        cap = capture_dir(out, scene, frames, size, seed + k + 10 * j, sway_m, exposure_s)
         if not (cap / "imu.csv").exists():
             t0 = time.perf_counter()
-            synthesize(cap, scene=scene, n_frames=frames, size=size, seed=seed + k + 10 * j, sway_m=sway_m)
+            synthesize(cap, scene=scene, n_frames=frames, size=size, seed=seed + k + 10 * j, sway_m=sway_m,
+                       exposure_s=exposure_s)
             print(f"[{scene}] synthesised in {time.perf_counter() - t0:.1f} s", flush=True)
         gt = load_capture(cap).ground_truth
         height = gt.camera_height_m
@@ -168,18 +179,19 @@ def format_bench(record: dict) -> str:
     every = record.get("every", 1)
     rows = [f"Benchmark {record['date']}, {record['machine']}, {record['frames']} frames at "
             f"{record['size'][0]}x{record['size'][1]}" + (f", every {every}th frame taken" if every > 1 else ""), "",
-            "| scene | method | registered | centre err. median (% diam., sim3) | rot. err. median (deg) "
+            "| scene | method | registered | accurate | centre err. median (% diam., sim3) | rot. err. median (deg) "
             "| corner reproj. mean (px) "
             "| line-surface median (m) | edges recovered | seconds | peak MB |",
-            "|" + "---|" * 10]
+            "|" + "---|" * 11]
     for scene, entry in record["scenes"].items():
         for method, r in entry.items():
             if "error" in r:
-                rows.append(f"| {scene} | {method} | failed: {r['error']} |" + " |" * 7)
+                rows.append(f"| {scene} | {method} | failed: {r['error']} |" + " |" * 8)
                 continue
             cen = _m(r, "center_error_rel", "median")
             rows.append(
                 f"| {scene} | {method} | {f(100 * (_m(r, 'registered_share') or 0), '.1f')} % "
+                f"| {f(100 * (_m(r, 'accurate_share') or 0), '.1f')} % "
                 f"| {f(None if cen is None else 100 * cen, '.2f')} "
                 f"| {f(_m(r, 'rotation_error_rotalign_deg', 'median'), '.3f')} "
                 f"| {f(_m(r, 'reprojection_px', 'mean'), '.2f')} "
@@ -203,10 +215,46 @@ def format_bench(record: dict) -> str:
     return "\n".join(rows)
 
 
+def speeds_summary(records: dict[int, dict]) -> dict:
+    """Returns the summary of one benchmark per spin speed ({frames: record}): per speed and scene the medians
+    over its captures (panosfm), the median seconds per capture, and the exponent b of seconds ~ frames^b
+    (least squares in log-log over the speeds; 1: linear in the frames)."""
+    import numpy as np
+
+    rows, secs = {}, {}
+    for n, rec in sorted(records.items()):
+        med = rec.get("median_over_seeds") or _medians(rec["scenes"], sorted({k.split("#")[0] for k in rec["scenes"]}))
+        rows[n] = {scene: methods.get("panosfm") for scene, methods in med.items()}
+        walls = [e["panosfm"]["wall_s"] for e in rec["scenes"].values() if "error" not in e.get("panosfm", {"error": 1})]
+        secs[n] = float(np.median(walls)) if walls else None
+    pts = [(n, t) for n, t in secs.items() if t]
+    slope = float(np.polyfit(np.log([n for n, _ in pts]), np.log([t for _, t in pts]), 1)[0]) if len(pts) >= 2 else None
+    return {"by_frames": rows, "seconds_median": secs, "time_exponent": slope}
+
+
+def format_speeds(summary: dict) -> str:
+    """Returns the markdown table of :func:`speeds_summary`."""
+    def f(v, spec, scale=1.0):
+        return "n/a" if v is None else format(scale * v, spec)
+
+    rows = ["| frames per turn | scene | registered | accurate | centre err. median (% diam.) | corner reproj. (px) "
+            "| seconds per capture |", "|" + "---|" * 7]
+    for n, scenes in summary["by_frames"].items():
+        for scene, v in scenes.items():
+            v = v or {}
+            rows.append(f"| {n} | {scene} | {f(v.get('registered'), '.1f', 100)} % | {f(v.get('accurate'), '.1f', 100)} % "
+                        f"| {f(v.get('centre'), '.2f', 100)} | {f(v.get('reprojection'), '.2f')} "
+                        f"| {f(summary['seconds_median'][n], '.1f')} |")
+    b = summary["time_exponent"]
+    rows += ["", f"Seconds per capture grow as frames^{f(b, '.2f')} (median seconds per speed, log-log fit; 1 = linear)."]
+    return "\n".join(rows)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenes", default="living,bedroom,office")
-    p.add_argument("--frames", type=int, default=300)
+    p.add_argument("--frames", default="300", help="frames per turn; a comma list runs one benchmark per speed "
+                   "(OUT/f<N>) and writes OUT/speeds.json and speeds.md")
     p.add_argument("--size", default="960x540")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="bench")
@@ -224,6 +272,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="a pipeline setting for panosfm run (repeatable)")
     p.add_argument("--every", type=int, default=1, metavar="K",
                    help="panosfm takes every K-th frame (panosfm run --every): fewer frames per turn")
+    p.add_argument("--exposure", type=float, default=0.0, metavar="S",
+                   help="render each frame's motion blur for this exposure time (panosfm synth --exposure)")
     p.add_argument("--drop-captures", action="store_true",
                    help="delete each synthetic capture once scored (45 captures at 960x540 take about 75 GB)")
     args = p.parse_args(argv)
@@ -238,8 +288,19 @@ def main(argv: list[str] | None = None) -> int:
         peers = []
     else:
         peers = [s.strip() for s in args.peer.split(",") if s.strip()]
-    bench([s.strip() for s in args.scenes.split(",")], args.frames, (w, h), Path(args.out), peers, args.seed,
-          args.reuse_peer, args.seeds, args.set, args.resume, args.sway, args.drop_captures, args.every)
+    frames = [int(v) for v in args.frames.split(",") if v.strip()]
+    out = Path(args.out)
+    records = {}
+    for n in frames:
+        records[n] = bench([s.strip() for s in args.scenes.split(",")], n, (w, h),
+                           out / f"f{n}" if len(frames) > 1 else out, peers, args.seed, args.reuse_peer, args.seeds,
+                           args.set, args.resume, args.sway, args.drop_captures, args.every, args.exposure)
+    if len(frames) > 1:
+        summary = speeds_summary(records)
+        (out / "speeds.json").write_text(json.dumps(summary, indent=2))
+        md = format_speeds(summary)
+        (out / "speeds.md").write_text(md + "\n")
+        print(md)
     return 0
 
 

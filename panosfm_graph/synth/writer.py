@@ -54,13 +54,14 @@ def frame_name(i: int) -> str:
 
 
 def _render_chunk(scene: Scene, K: np.ndarray, R_wc: np.ndarray, centers: np.ndarray, indices: list[int],
-                  size: tuple[int, int], texture: float, blur: float, noise: float, seed: int,
+                  size: tuple[int, int], texture: float, blur: np.ndarray, noise: float, seed: int,
                   root: str, gt_maps: bool) -> int:
-    """Renders and writes frames ``indices`` (one worker task); returns how many were written."""
+    """Renders and writes frames ``indices`` (one worker task; ``blur`` (px) per frame); returns how many were
+    written."""
     cv2.setNumThreads(1)
     root_p = Path(root)
     for j, i in enumerate(indices):
-        img, depth, normals = render_frame(scene, K, R_wc[j], centers[j], size, texture=texture, blur=blur,
+        img, depth, normals = render_frame(scene, K, R_wc[j], centers[j], size, texture=texture, blur=float(blur[j]),
                                            noise=noise, seed=int(seed) * 1_000_003 + int(i))
         name = frame_name(i)
         if not cv2.imwrite(str(root_p / "frames" / name), img, PNG_PARAMS):
@@ -70,6 +71,20 @@ def _render_chunk(scene: Scene, K: np.ndarray, R_wc: np.ndarray, centers: np.nda
             np.save(root_p / "ground_truth" / "normals" / f"{stem}.npy", normals.astype(np.float16))
             np.save(root_p / "ground_truth" / "depth" / f"{stem}.npy", depth.astype(np.float32))
     return len(indices)
+
+
+def motion_blur_px(K: np.ndarray, R_wc: np.ndarray, ts: np.ndarray, exposure_s: float) -> np.ndarray:
+    """Returns (F,) each frame's motion blur length (px): ``exposure_s`` times the camera's angular speed there
+    (central differences of the rotations over the timestamps), times the focal length: how far the image centre
+    moves during the exposure (0 for ``exposure_s`` 0 or a single frame)."""
+    F = len(R_wc)
+    if exposure_s <= 0 or F < 2:
+        return np.zeros(F)
+    rel = np.einsum("fji,fjk->fik", R_wc[:-1], R_wc[1:])  # R_i^T R_{i+1}
+    step = np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
+    speed = step / np.maximum(np.diff(ts), 1e-9)  # rad/s between frames
+    at_frame = np.concatenate([speed[:1], 0.5 * (speed[1:] + speed[:-1]), speed[-1:]])
+    return exposure_s * at_frame * float(K[0, 0])
 
 
 def _write_csv(path: Path, header: str, rows: list[str]) -> None:
@@ -146,7 +161,7 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
                size: tuple[int, int] = (960, 540), seed: int = 0, *, imu_drift_deg: float = 3.0,
                turn_deg: float = 380.0, texture: float = 1.0, blur: float = 0.0, noise: float = 0.0,
                gt_maps: bool = True, workers: int = 2, fps: float = 30.0,
-               imu_noise_deg: float = 0.1, sway_m: float = 0.0) -> Path:
+               imu_noise_deg: float = 0.1, sway_m: float = 0.0, exposure_s: float = 0.0) -> Path:
     """Returns the path of a new synthetic spin capture of ``scene`` written to ``out_dir``.
 
     ``size`` is (width, height) px; ``seed`` seeds the spin, IMU noise, image
@@ -157,11 +172,15 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
     ``gt_maps=False`` skips the per-frame normal and depth maps. ``sway_m``: how far
     the spin departs from an ideal circle (stand point wandering, arm length and
     angle varying; :mod:`panosfm_graph.synth.trajectory`), 0 = the ideal circle.
+    ``exposure_s``: each frame's exposure time; its motion blur (added to ``blur``)
+    is the exposure times the camera's angular speed at that frame, in pixels at the
+    focal length (:func:`motion_blur_px`): a fast spin blurs, a slow one does not.
     Raises :class:`InputError` for an existing non-empty ``out_dir`` or bad settings.
     """
     out = Path(out_dir)
     _check_args(out, scene, n_frames, size, workers, imu_drift_deg=abs(imu_drift_deg), texture=texture,
-                blur=blur, noise=noise, imu_noise_deg=imu_noise_deg, turn_deg=turn_deg, fps=fps, sway_m=sway_m)
+                blur=blur, noise=noise, imu_noise_deg=imu_noise_deg, turn_deg=turn_deg, fps=fps, sway_m=sway_m,
+                exposure_s=exposure_s)
     if fps <= 0 or turn_deg <= 0:
         raise InputError(f"fps and turn_deg must be > 0, got fps={fps}, turn_deg={turn_deg}")
     n_frames, size, seed = int(n_frames), (int(size[0]), int(size[1])), int(seed)
@@ -174,7 +193,8 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
     with atomic_capture_dir(out) as tmp:
         settings = dict(scene=scene, n_frames=n_frames, size=list(size), seed=seed, imu_drift_deg=imu_drift_deg,
                         imu_noise_deg=imu_noise_deg, turn_deg=turn_deg, texture=texture, blur=blur, noise=noise,
-                        fps=fps, gt_maps=bool(gt_maps), sway_m=sway_m)
+                        fps=fps, gt_maps=bool(gt_maps), sway_m=sway_m,
+                        **({"exposure_s": exposure_s} if exposure_s > 0 else {}))
         lines, labels = sc.edges()
         write_capture_tables(tmp, K, size, fps, ts, t_imu, R_imu, R_wc, centers,
                              {"generator": "panosfm_graph.synth", **settings}, lines, labels, sc.to_json())
@@ -182,7 +202,9 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
             (tmp / "ground_truth" / "normals").mkdir()
             (tmp / "ground_truth" / "depth").mkdir()
         chunks = [list(range(i, min(i + CHUNK_FRAMES, n_frames))) for i in range(0, n_frames, CHUNK_FRAMES)]
-        args = [(sc, K, R_wc[c[0]:c[-1] + 1], centers[c[0]:c[-1] + 1], c, size, texture, blur, noise, seed,
+        blur_px = blur + motion_blur_px(K, R_wc, ts, exposure_s)
+        args = [(sc, K, R_wc[c[0]:c[-1] + 1], centers[c[0]:c[-1] + 1], c, size, texture, blur_px[c[0]:c[-1] + 1],
+                 noise, seed,
                  str(tmp), bool(gt_maps)) for c in chunks]
         if workers == 1 or len(chunks) == 1:
             for a in progress(args, "synth frames"):
