@@ -109,6 +109,9 @@ class TrackingConfig:
     # jump to a neighbouring line and is dropped (0: off); see docs/decisions.md#line-jumps
     jump_px: float = 3.0
     jump_ref_deg: float = 2.0  # ... times a pair's turn / this where more (0: fixed); see docs/decisions.md#merge-gap-and-jump-threshold-in-degrees
+    # option: that factor to the power 1 + this * |n_x| (upright lines keep parallax; 0: off); off: better at 60 frames per
+    # turn, worse at 100, see docs/decisions.md#upright-lines-jump-further
+    jump_across_power: float = 0.0
     # tracks of one axis that end and start at most this many frames apart are joined when their fits agree (0: off);
     # see docs/decisions.md#fragment-merging
     merge_gap_frames: int = 3

@@ -749,6 +749,32 @@ def test_the_jump_test_allows_the_parallax_of_a_wider_turn():
     assert jump_threshold(np.eye(3), near, Config().tracking) == pytest.approx(3.0)
 
 
+def test_upright_lines_keep_more_parallax_than_horizontal_ones():
+    """TrackingConfig.jump_across_power: frames 4 degrees apart, an upright line 8 px across itself (a sideways step
+    shifts it by f t / Z) is kept (3 px * 2^2 = 12 px), dropped without the power (3 px * 2 = 6 px); a horizontal
+    line 8 px off is dropped either way (6 px)."""
+    from panosfm_graph.lines.tracking import _warp, jump_threshold, rotation_homography
+    from panosfm_graph.lines.tracking import track_lines as track_segments
+
+    seg, labels, n = _shifted_pair(np.array([0.0, 0.0]))
+    K = np.array([[300.0, 0, 160], [0, 300.0, 90], [0, 0, 1]])
+    R = np.stack([np.eye(3), Rotation.from_euler("y", 4.0, degrees=True).as_matrix()])
+    e = seg.endpoints.astype(np.float64)
+    e1 = _warp(rotation_homography(K, R[0], R[1]), e[:n])
+    e1[7] += [8.0, 0.0, 8.0, 0.0]  # the upright line at x=110
+    e1[2] += [0.0, 8.0, 0.0, 8.0]  # the horizontal line at y=95
+    seg = dataclasses.replace(seg, endpoints=np.concatenate([e[:n], e1]).astype(np.float32))
+    directions = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]])
+    for power, upright_kept in ((1.0, True), (0.0, False)):
+        cfg = with_overrides(Config(), tracking={"jump_across_power": power})
+        assert jump_threshold(R[0], R[1], cfg.tracking, 1.0) == pytest.approx(12.0 if power else 6.0, rel=1e-6)
+        tracks = track_segments(seg, labels, K, R, cfg.tracking, image_size=(320, 180), directions=directions)
+        t0, t1 = tracks.track_of[:n], tracks.track_of[n:]
+        assert ((t0 >= 0) & (t0 == t1))[np.r_[0:2, 3:7, 8:12]].all()
+        assert (t0[7] >= 0 and t0[7] == t1[7]) == upright_kept, (power, t0[7], t1[7])
+        assert not (t0[2] >= 0 and t0[2] == t1[2])
+
+
 def test_the_merge_gap_holds_a_turn_at_any_spin_speed():
     """TrackingConfig.merge_gap_deg: merge_fragments crosses merge_gap_frames (3) at 300 frames per turn, fewer
     frames where they turn further than 5.5 degrees (2 at 150 per turn, 1 at 100 or fewer), never more."""
