@@ -40,7 +40,7 @@ from .geometry import rotation_angle_deg  # noqa: F401  (re-exported: part of th
 log = logging.getLogger(__name__)
 # a registered frame is accurate when its centre lies within this share of the true trajectory's diameter and its
 # rotation within this many degrees, after the rotation of the orientations and the scale and shift of the centres
-# (accurate_alignment; see docs/decisions.md#accurate-frames-aligned-by-the-orientations)
+# (accurate_frames; see docs/decisions.md#accurate-frames-aligned-by-the-orientations)
 ACCURATE_CENTER_REL = 0.05
 ACCURATE_ROTATION_DEG = 1.0
 ZERO_BASELINE_M = 1e-6  # true centres closer than this: a zero-baseline capture, rotations only

@@ -223,9 +223,9 @@ def speeds_summary(records: dict[int, dict]) -> dict:
 
     rows, secs = {}, {}
     for n, rec in sorted(records.items()):
-        med = rec.get("median_over_seeds") or _medians(rec["scenes"], sorted({k.split("#")[0] for k in rec["scenes"]}))
+        med = _medians(rec["scenes"], list(dict.fromkeys(name.split("#")[0] for name in rec["scenes"])))
         rows[n] = {scene: methods.get("panosfm") for scene, methods in med.items()}
-        walls = [e["panosfm"]["wall_s"] for e in rec["scenes"].values() if "error" not in e.get("panosfm", {"error": 1})]
+        walls = [e["panosfm"]["wall_s"] for e in rec["scenes"].values() if "metrics" in e.get("panosfm", {})]
         secs[n] = float(np.median(walls)) if walls else None
     pts = [(n, t) for n, t in secs.items() if t]
     slope = float(np.polyfit(np.log([n for n, _ in pts]), np.log([t for _, t in pts]), 1)[0]) if len(pts) >= 2 else None

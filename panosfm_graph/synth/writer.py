@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 
 from ..errors import InputError
-from ..geometry import matrix_to_quat_wxyz
+from ..geometry import matrix_to_quat_wxyz, rotation_angle_deg
 from ..parallel import process_pool
 from ..progress import progress
 from .render import intrinsics, render_frame
@@ -80,9 +80,7 @@ def motion_blur_px(K: np.ndarray, R_wc: np.ndarray, ts: np.ndarray, exposure_s: 
     F = len(R_wc)
     if exposure_s <= 0 or F < 2:
         return np.zeros(F)
-    rel = np.einsum("fji,fjk->fik", R_wc[:-1], R_wc[1:])  # R_i^T R_{i+1}
-    step = np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
-    speed = step / np.maximum(np.diff(ts), 1e-9)  # rad/s between frames
+    speed = np.radians(rotation_angle_deg(R_wc[:-1], R_wc[1:])) / np.maximum(np.diff(ts), 1e-9)  # rad/s between frames
     at_frame = np.concatenate([speed[:1], 0.5 * (speed[1:] + speed[:-1]), speed[-1:]])
     return exposure_s * at_frame * float(K[0, 0])
 
