@@ -218,8 +218,8 @@ class LinearConfig:
     motion_order: int = 2  # 2: velocity constant in a frame turning with the camera heading (linear/priors.py); 1: T_a - T_b ~ 0
     motion_max_gap: int = 3  # frames: no motion row across a larger gap between registered frames
     # anchor frames (fixed on every axis by their own lines) this many degrees of turn apart or closer are linked by
-    # the motion prior, the frames between them registered (0: off; the steady style uses 45); see
-    # docs/decisions.md#motion-bridging
+    # the motion prior, the frames between them registered (0: off; the steady style uses 90); see
+    # docs/decisions.md#motion-bridging and docs/decisions.md#steady-bridge
     motion_bridge_deg: float = 0.0
     # spin model rows (our addition): sigma of a colinearity row / sigma of a centre off the circle the phone describes
     # about a slowly wandering stand point (~2.5 mm / 1.2 cm; 0: off, the paper); see docs/decisions.md#spin-prior
@@ -361,14 +361,14 @@ def with_overrides(config: Config, **sections: dict[str, Any]) -> Config:
 
 # Spin styles (``panosfm run --spin``; our addition). "hand-held" places a frame only where its own lines fix it, the
 # stand point wandering between knots 90 degrees of turn apart. "steady" has one stand point for the whole sweep and
-# places the frames between two that their lines fix (at most 45 degrees apart) on its circle: for spins that really
+# places the frames between two that their lines fix (at most 90 degrees apart) on its circle: for spins that really
 # stay put (a rotating arm, a turntable); on a swaying spin it is wrong by the sway. See
 # docs/decisions.md#steady-spin-style and docs/decisions.md#auto-spin-style.
 SPIN_STYLES: dict[str, dict[str, dict[str, Any]]] = {
     "auto": {},  # the defaults: hand-held, and steady where the centres say so (graph.steady_auto)
     "hand-held": {"graph": {"steady_auto": False}},
     "steady": {
-        "linear": {"spin_knot_deg": 0.0, "motion_bridge_deg": 45.0},
+        "linear": {"spin_knot_deg": 0.0, "motion_bridge_deg": 90.0},
         "graph": {"spin_knot_deg": 0.0, "spin_position": True, "steady_auto": False},
     },
 }
