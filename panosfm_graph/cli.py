@@ -184,7 +184,7 @@ def _or(value, default):
 
 def _cmd_synth(args: argparse.Namespace) -> int:
     scene_only = {"--scene": args.scene, "--texture": args.texture, "--blur": args.blur, "--exposure": args.exposure,
-                  "--noise": args.noise, "--sway": args.sway, "--no-gt-maps": args.no_gt_maps or None}
+                  "--noise": args.noise, "--sway": args.sway, "--arm": args.arm, "--no-gt-maps": args.no_gt_maps or None}
     pano_only = {"--layout": args.layout, "--hfov": args.hfov, "--wobble": args.wobble, "--imu-noise": args.imu_noise}
     if args.panorama is not None:
         given = [k for k, v in scene_only.items() if v is not None]
@@ -207,7 +207,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
                       size=_or(args.size, (960, 540)), seed=args.seed, imu_drift_deg=args.imu_drift,
                       turn_deg=_or(args.turn, 380.0), texture=_or(args.texture, 1.0), sway_m=_or(args.sway, 0.0),
                       blur=_or(args.blur, 0.0), noise=_or(args.noise, 0.0), gt_maps=not args.no_gt_maps,
-                      exposure_s=_or(args.exposure, 0.0))
+                      exposure_s=_or(args.exposure, 0.0), arm_m=args.arm)
     print(f"wrote {path}")
     return 0
 
@@ -320,6 +320,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--sway", type=float, default=None, metavar="M",
                    help="how far the spin departs from a circle (stand point wandering, arm varying), metres RMS "
                         "(default 0)")
+    s.add_argument("--arm", type=float, default=None, metavar="M",
+                   help="radius of the circle the camera centre describes (default: 0.30-0.40 m by seed; "
+                        "0 = a tripod spin, zero baseline)")
     s.add_argument("--no-gt-maps", action="store_true", help="skip per-frame ground-truth normals and depth")
     s.set_defaults(func=_cmd_synth)
 

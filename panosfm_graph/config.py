@@ -198,6 +198,11 @@ class LinearConfig:
     min_depth_m: float = 0.3  # lower bound on every depth (lambda > 0)
     camera_height_m: float | None = None  # metric scale: floor this far below the mean camera height
     zero_translation: bool = False  # the paper's baseline: all camera centres fixed at the origin
+    # zero baseline (our addition): below this median drift (px) of tracked segments off their track's plane through
+    # the camera, the spin has no measurable parallax and is solved with one shared centre, every frame output (0:
+    # never); see docs/decisions.md#zero-baseline
+    zero_baseline_px: float = 3.0
+    zero_baseline_min_turn_deg: float = 20.0  # ... only tracks seen over this much turn measure it
     # register a frame only if its lines' interpretation-plane normals span 3D this well (smallest eigenvalue of their
     # scatter; the BA's determinacy test still applies); see docs/decisions.md#min-view-eigenvalue
     min_view_eig: float = 0.005
@@ -321,6 +326,10 @@ class GraphConfig:
     # phases >= 2: absolute prior at the preprocessed (vanishing-point) rotations (deg; 0: off); see
     # docs/decisions.md#rotation-prior
     rotation_prior_sigma_deg: float = 0.1
+    # a zero-baseline spin (linear.zero_baseline_px) adjusts its rotations and lines about the one shared centre
+    # (graph/rotation_only.py; False: the linear solve's rotations, the preprocessed ones); see
+    # docs/decisions.md#zero-baseline-rotations
+    zero_baseline_rotations: bool = True
     # option: that prior turned by a heading-drift ramp the BA estimates, prior on the ramp's total (deg; 0: off);
     # off: the lines do not fix the slope, see docs/decisions.md#heading-drift-slope-in-the-ba
     heading_drift_sigma_deg: float = 0.0

@@ -51,8 +51,8 @@ AXIS_COLORS = np.array([[230, 60, 60], [60, 200, 60], [60, 110, 240], [160, 160,
 
 
 def _fmt(x: float) -> str:
-    """Returns ``x`` as COLMAP writes doubles (17 significant digits, exact round trip)."""
-    return "%.17g" % float(x)
+    """Returns ``x`` as COLMAP writes doubles (17 significant digits, exact round trip; -0 as 0)."""
+    return "%.17g" % (float(x) + 0.0)
 
 
 # --------------------------------------------------------------------------------------

@@ -85,6 +85,12 @@ class RunResult:
             lines.append(f"  scale       arbitrary (no floor line verified for --camera-height{units})")
         else:
             lines.append(f"  scale       arbitrary (no --camera-height{units})")
+        zb = s.get("zero_baseline")
+        if zb and zb.get("parallax_px") is not None:
+            verdict = ("ZERO: no measurable parallax, every frame at one shared centre, no translation solved"
+                       if zb.get("detected") else "measured")
+            lines.append(f"  baseline    {verdict} (lines drift {zb['parallax_px']:.2f} px off their plane through "
+                         f"the camera, median of {zb['tracks']} tracks; zero under {zb['threshold_px']:g} px)")
         style, check = s.get("spin_style"), ba.get("steady_check")
         if style:
             why = ""
@@ -304,6 +310,15 @@ def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
         # the paper's baseline keeps every camera centre at the origin; BA would move them
         log.info("zero-translation baseline: bundle adjustment skipped, the linear solve is the result")
         return result.linear
+    if (result.linear.residuals.get("zero_baseline") or {}).get("detected"):
+        # no parallax: the BA's translations would be noise fitted to noise (linear/baseline.py); the rotations
+        # and lines are adjusted about the one shared centre
+        if not config.graph.zero_baseline_rotations:
+            log.info("zero baseline: bundle adjustment skipped, every frame at one shared centre")
+            return result.linear
+        from .graph import rotation_bundle_adjust
+
+        return rotation_bundle_adjust(pre, result.tracks, result.linear, config.graph)
     if config.graph.incremental_batch:
         batches = bundle_adjust_incremental(pre, result.tracks, result.relations, result.linear,
                                             config.graph, on_batch=on_batch)
@@ -382,6 +397,8 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
         "metric": bool(sol.metric) if sol is not None else False,
         "scale": (_scale_text(config.linear.camera_height_m, n_floor, sol.residuals)
                   if sol is not None and sol.metric else _arbitrary_scale_text(sol, config)),
+        # the parallax test (linear/baseline.py): detected -> one shared centre, no translation solved
+        "zero_baseline": (result.linear.residuals.get("zero_baseline") if result.linear is not None else None),
         "spin_style": (sol.residuals.get("spin_style") if sol is not None and sol is not result.linear else None),
         "residuals": {"linear": linear_res,
                       "bundle_adjust": ({k: v for k, v in sol.residuals.items() if k != "linear_steady"}

@@ -67,6 +67,9 @@ without any coplanarity; coplanarities whose lines that solve puts further apart
 ``verify_sigma`` of their std are dropped, and the phases start from that solve when it fixes at
 least ``verify_start_share`` of the frames (:func:`_verify_relations`).
 
+Zero baseline (ours, :func:`rotation_bundle_adjust`, ``graph/rotation_only.py``): a spin without parallax
+adjusts only rotations and lines about one fixed centre (the lines at an assumed distance of 1 unit).
+
 Solver: our own Levenberg-Marquardt loop over ``graph.linearize`` /
 ``GaussianFactorGraph.optimize`` / ``Values.retract`` with isotropic damping
 (``notes/gtsam-python-performance.md``: GTSAM's optimizers are slow with many
@@ -101,6 +104,7 @@ from .lm import levenberg_marquardt
 from .problem import (ARM_KEY, DRIFT_KEY, FLOOR_KEY, FOCAL_KEY, center_key, floor_held_scale, line_key, relation_residuals,
                       relation_sigmas, rotation_key, stand_key)
 from .readout import line_extents
+from .rotation_only import rotation_bundle_adjust
 from .scale import _scaled
 from .solve import MAX_REJECT_ROUNDS, bundle_adjust, bundle_adjust_incremental
 from .spin import fit_spin, spin_arm_length, spin_fit
@@ -110,6 +114,6 @@ __all__ = [
     "ARM_KEY", "CHUNK_OBS", "DRIFT_KEY", "FLOOR_KEY", "FOCAL_KEY", "FOCAL_PRIOR_FRAC", "GAUGE_SIGMA", "MAX_REJECT_ROUNDS",
     "bundle_adjust", "bundle_adjust_incremental", "center_key", "determinacy", "fit_spin", "floor_held_scale",
     "focal_sigma", "levenberg_marquardt", "line_extents", "line_key", "relation_residuals", "relation_sigmas",
-    "rotation_key", "spin_arm_length", "spin_fit", "stand_key", "steady_or_hand_held",
+    "rotation_bundle_adjust", "rotation_key", "spin_arm_length", "spin_fit", "stand_key", "steady_or_hand_held",
     "_scaled",  # tests/test_graph.py
 ]

@@ -8,6 +8,7 @@ colinearity and coplanarity constraints are linear, and the depths must be posit
 :func:`solve_linear` (:mod:`.solve`) runs the steps; each module's docstring says its part of the
 formulation and where it departs from the paper:
 
+* :mod:`.baseline` -- does the spin show parallax at all (zero baseline: one shared centre)?
 * :mod:`.system` -- the observations, the usable relations, the unknowns in Manhattan coordinates
   and the system's rows (colinearity, coplanarity, floor), the depths eliminated;
 * :mod:`.priors` -- the body-motion prior and the spin model (not in the paper);

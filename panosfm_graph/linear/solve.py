@@ -9,6 +9,12 @@
   difference, so it leaves no residual to find it by (measured: parts of the sweep collapsed onto
   a point); the bundle adjustment brings the coplanarities in with a redescending kernel.
 
+* Zero baseline* (``zero_baseline_px`` > 0): a spin whose tracked lines show no parallax
+  (:func:`.baseline.parallax_px`) has no translation to solve for: it is solved as the paper's
+  zero-translation baseline, every frame registered at one shared centre, and said so
+  (``residuals["zero_baseline"]``, a warning) instead of fitting translations to noise; the bundle
+  adjustment then refines only the rotations (``graph.rotation_bundle_adjust``).
+
 (* marks a deviation from the paper.)
 """
 from __future__ import annotations
@@ -21,6 +27,7 @@ import numpy as np
 
 from ..config import LinearConfig
 from ..data import FLOOR, Camera, Preprocessed, Relations, Solution, Tracks
+from .baseline import parallax_px
 from .registration import determinable_frames
 from .result import camera_centres, line_model, residual_report
 from .robust import solve_constrained
@@ -57,6 +64,8 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     and those the robust solve left below ``reject_weight`` (the bundle adjustment leaves them out:
     :func:`~panosfm_graph.graph.bundle_adjust`).
     """
+    if config.zero_baseline_px > 0 and not config.zero_translation:
+        return _zero_baseline_or_not(pre, tracks, relations, camera, config)
     if config.tracks_first and config.coplanarity_weight > 0:
         return _tracks_first(pre, tracks, relations, camera, config)
     if config.floor_verify_ratio > 0 and np.any(relations.kind == FLOOR):
@@ -84,6 +93,28 @@ def solve_linear(pre: Preprocessed, tracks: Tracks, relations: Relations, camera
     kept[est.rejected] = False
     return Solution(R_wc=np.asarray(pre.R_wc, dtype=np.float64).copy(), centers=centers, registered=registered,
                     lines=lines, camera=camera, metric=scaled.mode == "metric", residuals=res, relations_kept=kept)
+
+
+def _zero_baseline_or_not(pre: Preprocessed, tracks: Tracks, relations: Relations, camera: Camera,
+                          config: LinearConfig) -> Solution:
+    """Returns the zero-translation solve when the spin shows no parallax, else the solve; both record the test."""
+    median, p90, n = parallax_px(pre, tracks, camera, config.zero_baseline_min_turn_deg)
+    detected = bool(n > 0 and median < config.zero_baseline_px)
+    test = {"parallax_px": None if n == 0 else round(median, 3), "parallax_p90_px": None if n == 0 else round(p90, 3),
+            "tracks": n, "threshold_px": config.zero_baseline_px, "detected": detected}
+    rest = dataclasses.replace(config, zero_baseline_px=0.0, zero_translation=detected)
+    sol = solve_linear(pre, tracks, relations, camera, rest)
+    sol.residuals["zero_baseline"] = test
+    if detected:  # one shared centre is known for every frame, with or without lines of its own
+        F = len(sol.registered)
+        sol.residuals.update(registered=F, unregistered_reason_codes=[0] * F)
+        sol = dataclasses.replace(sol, registered=np.ones(F, bool), centers=np.zeros((F, 3)))
+        log.warning("zero baseline: tracked lines drift %.2f px (median of %d tracks) off their plane through the "
+                    "camera, under %.1f px: no measurable parallax, every frame output with one shared centre",
+                    median, n, config.zero_baseline_px)
+    else:
+        log.info("linear: parallax %s px (median of %d tracks)", "n/a" if n == 0 else f"{median:.2f}", n)
+    return sol
 
 
 def _tracks_first(pre: Preprocessed, tracks: Tracks, relations: Relations, camera: Camera,

@@ -12,6 +12,8 @@ wanders (smooth, RMS ``sway_m``, not returning to where it started), the arm
 length varies (RMS ``sway_m / 2``) and so does the angle between the arm and
 the optical axis (RMS ``2 deg * sway_m / 0.05 m``). ``sway_m = 0`` (the
 default) gives exactly the circle above, identical to earlier versions.
+``arm_m`` sets the circle's radius instead of the seeded 0.30-0.40 m; ``arm_m = 0``
+is a tripod spin (one optical centre, no bob): zero baseline.
 
 The IMU attitude is the true attitude with a heading drift that grows
 linearly in time from 0 at the first frame to ``imu_drift_deg`` at the last
@@ -20,7 +22,7 @@ sampled at 100 Hz over a span covering every frame timestamp.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -53,13 +55,16 @@ _SWAY_CYCLES = np.array([0.55, 1.35, 2.2])  # cycles per sweep of the sway's thr
 
 
 def spin_params(scene: Scene, n_frames: int, seed: int = 0, turn_deg: float = 380.0, fps: float = 30.0,
-                sway_m: float = 0.0) -> SpinParams:
-    """Returns the seeded spin parameters for ``scene`` (the same seed gives the same spin)."""
+                sway_m: float = 0.0, arm_m: float | None = None) -> SpinParams:
+    """Returns the seeded spin parameters for ``scene`` (the same seed gives the same spin).
+
+    ``arm_m``: the circle's radius (None: seeded); 0 also stops the bob (a tripod).
+    """
     rng = np.random.default_rng([int(seed), 4242])
     sway_rng = np.random.default_rng([int(seed), 4243])  # its own stream: sway_m = 0 leaves the rest unchanged
     amp = sway_rng.normal(size=(4, 3)) / np.arange(1, 4)[None]
     phase = sway_rng.uniform(0, 2 * np.pi, (4, 3))
-    return SpinParams(
+    p = SpinParams(
         sway_m=float(sway_m),
         sway=(amp, phase),
         stand_world=scene.stand_point_world.astype(np.float64),
@@ -76,6 +81,9 @@ def spin_params(scene: Scene, n_frames: int, seed: int = 0, turn_deg: float = 38
         roll_deg=(float(rng.uniform(-1.0, 1.0)), float(rng.uniform(1.0, 2.0)), float(rng.uniform(1.0, 2.5)), float(rng.uniform(0, 2 * np.pi))),
         duration_s=max(n_frames - 1, 1) / float(fps),
     )
+    if arm_m is None:
+        return p
+    return replace(p, radius_m=float(arm_m), bob_m=p.bob_m if arm_m > 0 else 0.0)
 
 
 def spin_pose(p: SpinParams, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -118,7 +126,8 @@ def _sway(p: SpinParams, s: np.ndarray) -> np.ndarray:
 
 
 def spin_trajectory(scene: Scene, n_frames: int, seed: int = 0, turn_deg: float = 380.0,
-                    fps: float = 30.0, sway_m: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    fps: float = 30.0, sway_m: float = 0.0, arm_m: float | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Returns (R_wc (F, 3, 3), centres (F, 3), timestamps (F,)) of a person's spin at ``fps``.
 
     Ground-truth poses of a synthetic capture of the paper's input (§3: a
@@ -126,18 +135,18 @@ def spin_trajectory(scene: Scene, n_frames: int, seed: int = 0, turn_deg: float 
     a small circle): world_from_camera rotations, camera centres in metres,
     timestamps ``i / fps`` seconds.
     """
-    p = spin_params(scene, n_frames, seed, turn_deg, fps, sway_m)
+    p = spin_params(scene, n_frames, seed, turn_deg, fps, sway_m, arm_m)
     ts = np.arange(n_frames, dtype=np.float64) / float(fps)
     R, c = spin_pose(p, ts)
     return R, c, ts
 
 
 def imu_stream(scene: Scene, n_frames: int, seed: int = 0, turn_deg: float = 380.0, fps: float = 30.0,
-               imu_drift_deg: float = 3.0, noise_deg: float = 0.1, rate_hz: float = 100.0, sway_m: float = 0.0
-               ) -> tuple[np.ndarray, np.ndarray]:
+               imu_drift_deg: float = 3.0, noise_deg: float = 0.1, rate_hz: float = 100.0, sway_m: float = 0.0,
+               arm_m: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Returns (timestamps (N,), R_wc (N, 3, 3)): the drifting IMU attitude at ``rate_hz`` of the scene's spin
     (:func:`imu_attitude`)."""
-    p = spin_params(scene, n_frames, seed, turn_deg, fps, sway_m)
+    p = spin_params(scene, n_frames, seed, turn_deg, fps, sway_m, arm_m)
     return imu_attitude(p, n_frames, fps, seed, imu_drift_deg, noise_deg, rate_hz)
 
 

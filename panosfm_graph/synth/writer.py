@@ -159,7 +159,8 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
                size: tuple[int, int] = (960, 540), seed: int = 0, *, imu_drift_deg: float = 3.0,
                turn_deg: float = 380.0, texture: float = 1.0, blur: float = 0.0, noise: float = 0.0,
                gt_maps: bool = True, workers: int = 2, fps: float = 30.0,
-               imu_noise_deg: float = 0.1, sway_m: float = 0.0, exposure_s: float = 0.0) -> Path:
+               imu_noise_deg: float = 0.1, sway_m: float = 0.0, exposure_s: float = 0.0,
+               arm_m: float | None = None) -> Path:
     """Returns the path of a new synthetic spin capture of ``scene`` written to ``out_dir``.
 
     ``size`` is (width, height) px; ``seed`` seeds the spin, IMU noise, image
@@ -173,6 +174,8 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
     ``exposure_s``: each frame's exposure time; its motion blur (added to ``blur``)
     is the exposure times the camera's angular speed at that frame, in pixels at the
     focal length (:func:`motion_blur_px`): a fast spin blurs, a slow one does not.
+    ``arm_m``: the spin circle's radius (None: seeded 0.30-0.40 m); 0 is a tripod spin with
+    one optical centre (zero baseline), which cannot sway.
     Raises :class:`InputError` for an existing non-empty ``out_dir`` or bad settings.
     """
     out = Path(out_dir)
@@ -181,18 +184,24 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
                 exposure_s=exposure_s)
     if fps <= 0 or turn_deg <= 0:
         raise InputError(f"fps and turn_deg must be > 0, got fps={fps}, turn_deg={turn_deg}")
+    if arm_m is not None and not (np.isfinite(arm_m) and 0.0 <= arm_m <= 2.0):
+        raise InputError(f"arm_m must be between 0 and 2 m, got {arm_m}")
+    if arm_m == 0 and sway_m > 0:
+        raise InputError("a tripod spin (arm 0) cannot sway: give --arm 0 or --sway, not both")
     n_frames, size, seed = int(n_frames), (int(size[0]), int(size[1])), int(seed)
     sc = make_scene(scene, seed)
     K = intrinsics(size)
-    R_wc, centers, ts = spin_trajectory(sc, n_frames, seed=seed, turn_deg=turn_deg, fps=fps, sway_m=sway_m)
+    R_wc, centers, ts = spin_trajectory(sc, n_frames, seed=seed, turn_deg=turn_deg, fps=fps, sway_m=sway_m,
+                                        arm_m=arm_m)
     t_imu, R_imu = imu_stream(sc, n_frames, seed=seed, turn_deg=turn_deg, fps=fps, imu_drift_deg=imu_drift_deg,
-                              noise_deg=imu_noise_deg, sway_m=sway_m)
+                              noise_deg=imu_noise_deg, sway_m=sway_m, arm_m=arm_m)
 
     with atomic_capture_dir(out) as tmp:
         settings = dict(scene=scene, n_frames=n_frames, size=list(size), seed=seed, imu_drift_deg=imu_drift_deg,
                         imu_noise_deg=imu_noise_deg, turn_deg=turn_deg, texture=texture, blur=blur, noise=noise,
                         fps=fps, gt_maps=bool(gt_maps), sway_m=sway_m,
-                        **({"exposure_s": exposure_s} if exposure_s > 0 else {}))
+                        **({"exposure_s": exposure_s} if exposure_s > 0 else {}),
+                        **({"arm_m": float(arm_m)} if arm_m is not None else {}))
         lines, labels = sc.edges()
         write_capture_tables(tmp, K, size, fps, ts, t_imu, R_imu, R_wc, centers,
                              {"generator": "panosfm_graph.synth", **settings}, lines, labels, sc.to_json())

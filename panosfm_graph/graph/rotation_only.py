@@ -1,0 +1,160 @@
+"""Bundle adjustment of a zero-baseline spin (our addition to paper §3.4): rotations and lines, one fixed centre.
+
+With no parallax (:mod:`..linear.baseline`) the centres are not solved, but the rotations still are: each
+tracked line lies on ONE plane through the shared centre, seen in every frame of its track, so the line
+reprojection factors of §3.4 tie the frames' rotations together across the spin exactly as in the full
+bundle adjustment. The graph: ``r<i>`` ``Rot3`` for every frame, ``l<t>`` ``Point3`` Taylor vector for each
+track seen in >= 2 frames, one centre ``c0`` held at the origin by a tight prior (every observation's
+centre); factors: line reprojection (:class:`factors.LineReprojectionSet`, Geman-McClure, its threshold
+graduated from the initial residuals to ``reprojection_robust_k`` as in phase 1 and 2), IMU relative
+rotations between consecutive frames, the rotation prior to the preprocessed (vanishing-point) rotations.
+A line's distance from the centre is not observable: every line starts at ``ASSUMED_DISTANCE`` (1 unit)
+towards its segments' mean viewing ray, a weak isotropic prior (sigma 1 unit: about a radian across the
+line) holds that distance and the point along the line, and the lines are drawn at that distance (on a
+cylinder about the centre, as directions; ``residuals["assumed_line_distance"]``).
+
+Not worse than its input by its own measure: when the lines' RMS reprojection distance ends higher than
+with the preprocessed rotations, those are kept and ``residuals["kept_preprocessed"]`` says so. Measured
+(docs/decisions.md#zero-baseline-rotations): real panorama cuts move 0.1 degrees (median), the worst frames most.
+"""
+from __future__ import annotations
+
+import logging
+import time
+
+import gtsam
+import numpy as np
+
+import factors
+
+from ..config import GraphConfig
+from ..data import LineModel, Preprocessed, Solution, Tracks
+from ..geometry import rotation_angle_deg, world_rays
+from .lm import levenberg_marquardt
+from .factor_graph import GAUGE_SIGMA
+from .problem import center_key, line_key, rotation_key
+from .readout import line_extents
+
+log = logging.getLogger("panosfm.graph")
+
+ASSUMED_DISTANCE = 1.0  # a line's distance from the centre, unobservable: each is drawn this far (model units)
+MAX_EXTENT = 3.0  # ... and at most this far along itself from its closest point (75 degrees off the perpendicular)
+
+
+def _initial_taylor(pre: Preprocessed, tracks: Tracks, K: np.ndarray, obs_seg: np.ndarray,
+                    obs_track: np.ndarray) -> np.ndarray:
+    """Returns (T, 3) Lambda at ``ASSUMED_DISTANCE`` from the centre, towards the mean viewing ray of each track's
+    segments (0 for tracks without observations)."""
+    M = np.asarray(pre.manhattan.directions, dtype=np.float64)
+    A = M[tracks.axis.astype(int)]
+    ep = pre.segments.endpoints[obs_seg].astype(np.float64)
+    ray = world_rays(K, pre.R_wc[pre.segments.frame[obs_seg]], 0.5 * (ep[:, :2] + ep[:, 2:]))
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    mean = np.stack([np.bincount(obs_track, ray[:, k], minlength=tracks.n) for k in range(3)], axis=1)
+    mean -= np.sum(mean * A, axis=1, keepdims=True) * A  # on the constraint manifold A . Lambda = 0
+    return ASSUMED_DISTANCE * mean / np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
+
+
+def rotation_bundle_adjust(pre: Preprocessed, tracks: Tracks, initial: Solution, config: GraphConfig) -> Solution:
+    """Returns the zero-baseline solution with rotations refined by the lines (module docstring), centres at 0.
+
+    ``initial``: the linear zero-translation solve (every frame registered, centres 0). The result keeps its
+    registration and centres; ``residuals`` record the reprojection RMS before and after and how far the
+    rotations moved (from the preprocessed ones, degrees).
+    """
+    t0 = time.perf_counter()
+    F = len(pre.R_wc)
+    K = initial.camera.K
+    seg, offsets = tracks.members()
+    frames_of_track = np.diff(offsets)
+    keep = frames_of_track[tracks.track_of[seg]] >= 2
+    obs_seg = seg[keep]
+    obs_track = tracks.track_of[obs_seg].astype(np.int64)
+    obs_frame = pre.segments.frame[obs_seg].astype(np.int64)
+    lines = np.unique(obs_track)
+    res: dict = {"zero_baseline": True, "assumed_line_distance": ASSUMED_DISTANCE, "frames": F, "lines": int(len(lines)), "observations": int(len(obs_seg))}
+    if len(lines) < 3:
+        log.warning("zero baseline: %d lines seen in >= 2 frames, too few to refine the rotations", len(lines))
+        res["skipped"] = "too few lines"
+        return _with(initial, res)
+    M = np.asarray(pre.manhattan.directions, dtype=np.float64)
+    A = M[tracks.axis.astype(int)]
+    taylor0 = _initial_taylor(pre, tracks, K, obs_seg, obs_track)
+    R0 = np.asarray(pre.R_wc, dtype=np.float64)
+    ep = pre.segments.endpoints[obs_seg].astype(np.float64)
+    zeros = np.zeros((len(obs_seg), 3))
+    r0 = factors.reprojection_terms(ep, A[obs_track], taylor0[obs_track], zeros, R0[obs_frame], K)
+    rms0 = float(np.sqrt(np.mean(np.sum(r0 ** 2, axis=1))))
+
+    values = gtsam.Values()
+    for i in range(F):
+        values.insert(rotation_key(i), gtsam.Rot3(R0[i]))
+    values.insert(center_key(0), np.zeros(3))
+    for t in lines:
+        values.insert(line_key(int(t)), taylor0[t])
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.PriorFactorPoint3(center_key(0), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, GAUGE_SIGMA)))
+    line_prior = gtsam.noiseModel.Isotropic.Sigma(3, ASSUMED_DISTANCE)  # about a radian across the line
+    for t in lines:
+        graph.add(gtsam.PriorFactorPoint3(line_key(int(t)), taylor0[t], line_prior))
+    if config.rotation_prior_sigma_deg > 0:
+        noise = gtsam.noiseModel.Isotropic.Sigma(3, float(np.radians(config.rotation_prior_sigma_deg)))
+        for i in range(F):
+            graph.add(gtsam.PriorFactorRot3(rotation_key(i), gtsam.Rot3(R0[i]), noise))
+    if config.imu_prior:
+        noise = factors.imu_noise(config.imu_sigma_deg)
+        for i in range(F - 1):
+            graph.add(factors.imu_rotation_factor(rotation_key(i), rotation_key(i + 1), pre.R_wc_imu[i],
+                                                  pre.R_wc_imu[i + 1], noise))
+    ks = tuple(config.reprojection_robust_k) or (0.0,)
+    k_final = float(ks[-1])
+    wide = config.reprojection_robust_widen * rms0 / config.reprojection_sigma_px
+    k_first = float(np.clip(wide, k_final, max(k_final, config.reprojection_robust_k_max))) if k_final > 0 else 0.0
+    info = {}
+    for phase, k in enumerate((k_first, k_final), start=1):  # graduated: as wide as the initial residuals, then k
+        robust = config.reprojection_robust if k > 0 else "none"
+        rep = factors.LineReprojectionSet([line_key(int(t)) for t in obs_track], [center_key(0)] * len(obs_seg), ep,
+                                          A[obs_track], K, config.reprojection_sigma_px,
+                                          rotation_keys=[rotation_key(int(i)) for i in obs_frame], robust=robust,
+                                          k=k if k > 0 else 1.345)
+        values, info = levenberg_marquardt(graph, values, max_iterations=config.max_iterations, batches=[rep])
+    R = np.array([values.atRot3(rotation_key(i)).matrix() for i in range(F)])
+    raw = np.array([values.atPoint3(line_key(int(t))) for t in lines]).reshape(-1, 3)
+    taylor = np.zeros((tracks.n, 3))
+    raw = factors.taylor_from_point_direction(raw, A[lines])
+    taylor[lines] = ASSUMED_DISTANCE * raw / np.maximum(np.linalg.norm(raw, axis=1, keepdims=True), 1e-12)
+    r1 = factors.reprojection_terms(ep, A[obs_track], taylor[obs_track], zeros, R[obs_frame], K)
+    rms1 = float(np.sqrt(np.mean(np.sum(r1 ** 2, axis=1))))
+    moved = rotation_angle_deg(R, R0)
+    res.update(reprojection_rms_initial=rms0, reprojection_rms=rms1, iterations=int(info.get("iterations", 0)),
+               rotation_change_deg={"median": float(np.median(moved)), "max": float(np.max(moved))},
+               seconds=time.perf_counter() - t0)
+    if not rms1 <= rms0:  # the lines fit worse: keep the preprocessed rotations (never silently worse)
+        log.warning("zero baseline: the rotation refinement fits the lines worse (%.2f -> %.2f px): kept the "
+                    "preprocessed rotations", rms0, rms1)
+        res["kept_preprocessed"] = True
+        return _with(initial, res)
+    extent = np.zeros((tracks.n, 2))
+    s = np.clip(line_extents(taylor[obs_track], A[obs_track], ep, R[obs_frame], zeros, K), -MAX_EXTENT, MAX_EXTENT)
+    lo = np.full(tracks.n, np.inf)
+    hi = np.full(tracks.n, -np.inf)
+    np.minimum.at(lo, obs_track, np.nanmin(np.where(np.isfinite(s), s, np.inf), axis=1))
+    np.maximum.at(hi, obs_track, np.nanmax(np.where(np.isfinite(s), s, -np.inf), axis=1))
+    ok = np.isfinite(lo) & np.isfinite(hi)
+    extent[ok] = np.c_[lo[ok], hi[ok]]
+    valid = np.zeros(tracks.n, bool)
+    valid[lines] = True
+    valid &= ok
+    line_model = LineModel(taylor=taylor, direction=A.copy(), axis=tracks.axis.copy(), extent=extent, valid=valid)
+    log.info("zero baseline: rotations refined by %d lines, reprojection %.2f -> %.2f px, moved %.2f deg "
+             "(median) in %.1f s", len(lines), rms0, rms1, res["rotation_change_deg"]["median"], res["seconds"])
+    return Solution(R_wc=R, centers=np.zeros((F, 3)), registered=np.ones(F, bool), lines=line_model,
+                    camera=initial.camera, metric=False, residuals=res,
+                    relations_kept=initial.relations_kept)
+
+
+def _with(initial: Solution, res: dict) -> Solution:
+    """Returns ``initial`` with the zero-baseline BA's residuals (nothing refined)."""
+    import dataclasses
+
+    return dataclasses.replace(initial, residuals=res)
