@@ -51,6 +51,9 @@ def _add_config_flags(p: argparse.ArgumentParser) -> None:
     g.add_argument("--normal-model", default=None, metavar="ONNX", help="run your own ONNX normal model")
     g.add_argument("--camera-height", type=float, default=None, metavar="M",
                    help="camera height above the floor in metres: makes the scale metric")
+    g.add_argument("--estimate-focal", action="store_true", default=None,
+                   help="estimate the focal length from the Manhattan vanishing points even when camera.json gives "
+                        "one (without one, it always is)")
     g.add_argument("--spin", choices=list(SPIN_STYLES), default=None,
                    help="how the capture was spun: hand-held (the stand point wanders), steady (the stand point "
                         "stays put: frames between two fixed ones are placed on the circle) or auto (default: "
@@ -140,6 +143,7 @@ def config_from_args(args: argparse.Namespace, base: Config | None = None) -> Co
     put("normals", "model_path", getattr(args, "normal_model", None))
     put("linear", "camera_height_m", getattr(args, "camera_height", None))
     put("graph", "incremental_batch", getattr(args, "incremental", None))
+    put("focal", "estimate", getattr(args, "estimate_focal", None))
     for item in getattr(args, "set", []) or []:
         if "=" not in item or "." not in item.split("=", 1)[0]:
             raise InputError(f"--set {item!r}: expected SECTION.FIELD=VALUE")
@@ -185,7 +189,7 @@ def _or(value, default):
 def _cmd_synth(args: argparse.Namespace) -> int:
     scene_only = {"--scene": args.scene, "--texture": args.texture, "--blur": args.blur, "--exposure": args.exposure,
                   "--noise": args.noise, "--sway": args.sway, "--arm": args.arm, "--no-gt-maps": args.no_gt_maps or None}
-    pano_only = {"--layout": args.layout, "--hfov": args.hfov, "--wobble": args.wobble, "--imu-noise": args.imu_noise}
+    pano_only = {"--layout": args.layout, "--wobble": args.wobble, "--imu-noise": args.imu_noise}
     if args.panorama is not None:
         given = [k for k, v in scene_only.items() if v is not None]
         if given:
@@ -207,7 +211,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
                       size=_or(args.size, (960, 540)), seed=args.seed, imu_drift_deg=args.imu_drift,
                       turn_deg=_or(args.turn, 380.0), texture=_or(args.texture, 1.0), sway_m=_or(args.sway, 0.0),
                       blur=_or(args.blur, 0.0), noise=_or(args.noise, 0.0), gt_maps=not args.no_gt_maps,
-                      exposure_s=_or(args.exposure, 0.0), arm_m=args.arm)
+                      exposure_s=_or(args.exposure, 0.0), arm_m=args.arm, hfov_deg=args.hfov)
     print(f"wrote {path}")
     return 0
 
@@ -308,7 +312,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--imu-noise", type=float, default=None, metavar="DEG",
                    help="with --panorama: IMU noise per 100 Hz sample, RMS (default 0.3)")
     s.add_argument("--hfov", type=float, default=None, metavar="DEG",
-                   help="with --panorama: horizontal field of view (default 65)")
+                   help="horizontal field of view (default 64; 65 with --panorama)")
     s.add_argument("--wobble", type=float, default=None, metavar="DEG",
                    help="with --panorama: pitch wobble amplitude, roll half of it (default 2.5)")
     s.add_argument("--turn", type=float, default=None, metavar="DEG", help="how far the person turns (default 380)")

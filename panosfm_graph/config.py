@@ -53,6 +53,23 @@ class ManhattanConfig:
 
 
 @dataclass(frozen=True)
+class FocalConfig:
+    """Focal length from the Manhattan vanishing points (our addition): camera.json without one, or asked for."""
+
+    estimate: bool = False  # estimate it even when camera.json gives one (panosfm run --estimate-focal)
+    hfov_min_deg: float = 30.0  # the search's horizontal fields of view: from ...
+    hfov_max_deg: float = 120.0  # ... to ...
+    hfov_step_deg: float = 5.0  # ... in steps of this, then a bounded scalar refinement
+    max_frames: int = 120  # evenly spread frames the search uses (all when fewer)
+    gauss_newton_iterations: int = 4  # each frame's rotation re-fitted to its segments at every candidate
+    gravity_sigma_deg: float = 0.5  # ... its tilt held to the IMU's gravity this tightly, the heading free
+    huber_deg: float = 0.5  # ... Huber threshold on a segment's residual
+    label_angle_deg: float = 85.0  # ... segments within 90 - this of a vanishing direction take part (the 85 degree rule)
+    truncate_px: float = 2.0  # cost: each segment's end-point distance (px) from its vanishing point's line, truncated here
+    min_sharpness: float = 1.01  # the cost 5 % off the estimate less than this many times higher: a warning
+
+
+@dataclass(frozen=True)
 class RotationConfig:
     """Supplement §2 (rotation refinement, Eq. 1)."""
 
@@ -345,6 +362,7 @@ class Config:
     capture: CaptureConfig = field(default_factory=CaptureConfig)
     detect: DetectConfig = field(default_factory=DetectConfig)
     manhattan: ManhattanConfig = field(default_factory=ManhattanConfig)
+    focal: FocalConfig = field(default_factory=FocalConfig)
     rotation: RotationConfig = field(default_factory=RotationConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     normals: NormalsConfig = field(default_factory=NormalsConfig)

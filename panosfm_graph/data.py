@@ -102,6 +102,8 @@ class Capture:
     R_wc_imu: np.ndarray  # (F, 3, 3) float64, IMU attitude slerped to each frame
     ground_truth: GroundTruth | None
     reader: Callable[[int], np.ndarray] = field(repr=False, compare=False)  # index -> BGR uint8 HxWx3
+    # False: camera.json gave no focal length; ``camera`` holds a provisional one (lines/focal.py estimates it)
+    focal_given: bool = True
 
     @property
     def n_frames(self) -> int:

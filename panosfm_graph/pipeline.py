@@ -55,6 +55,7 @@ class RunResult:
     solution: Solution | None = None
     batches: list[Solution] = field(default_factory=list)
     thumbnails: Thumbnails | None = None
+    focal: Any = None  # lines.focal.FocalEstimate where the focal length was estimated
 
     def report(self) -> str:
         """Returns a short human-readable account of the run."""
@@ -85,6 +86,13 @@ class RunResult:
             lines.append(f"  scale       arbitrary (no floor line verified for --camera-height{units})")
         else:
             lines.append(f"  scale       arbitrary (no --camera-height{units})")
+        foc = s.get("focal") or {}
+        if "estimated" in foc:
+            e = foc["estimated"]
+            refined = (f", {foc['focal_px']:.1f} px after the bundle adjustment"
+                       if abs(foc["focal_px"] - e["focal_px"]) > 0.05 else "")
+            lines.append(f"  focal       estimated {e['focal_px']:.1f} px (HFOV {e['hfov_deg']:.1f} deg) from the "
+                         f"Manhattan vanishing points{refined}")
         zb = s.get("zero_baseline")
         if zb and zb.get("parallax_px") is not None:
             verdict = ("ZERO: no measurable parallax, every frame at one shared centre, no translation solved"
@@ -197,8 +205,10 @@ def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config =
         cache.save("thumbnails", key, result.thumbnails)
     elif rerun:
         result.thumbnails = cache.load("thumbnails", key, Thumbnails)
+    if not done("detect") and (not capture.focal_given or config.focal.estimate):
+        capture = _estimate_focal(capture, segments, config, timings, result)
     if not done("detect"):
-        key = stable_hash(key, code("preprocess"), config.manhattan, config.rotation)
+        key = stable_hash(key, code("preprocess"), config.manhattan, config.rotation, capture.camera.params)
         pre = _cached(cache, "preprocess", key, Preprocessed,
                       lambda: _preprocess(capture, segments, config), timings, resumed)
         result.preprocessed = pre
@@ -259,6 +269,21 @@ def _detect(capture: Capture, config: Config, thumbnails: list[bytes] | None) ->
     from .lines.detect import detect_segments
 
     return detect_segments(capture, config.detect, thumbnails=thumbnails, thumbnail_width=THUMBNAIL_WIDTH)
+
+
+def _estimate_focal(capture: Capture, segments: Segments, config: Config, timings: dict[str, float],
+                    result: RunResult) -> Capture:
+    """Returns the capture with the focal length the Manhattan vanishing points give (``lines/focal.py``); the
+    estimate goes into ``result.focal``."""
+    from .capture.camera import with_focal
+    from .lines.focal import estimate_focal
+
+    with stage("focal", timings):
+        est = estimate_focal(segments, capture.R_wc_imu, capture.camera, config.focal, config.manhattan)
+    result.focal = est
+    capture = dataclasses.replace(capture, camera=with_focal(capture.camera, est.focal_px))
+    result.capture = capture
+    return capture
 
 
 def _preprocess(capture: Capture, segments: Segments, config: Config) -> Preprocessed:
@@ -397,6 +422,9 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
         "metric": bool(sol.metric) if sol is not None else False,
         "scale": (_scale_text(config.linear.camera_height_m, n_floor, sol.residuals)
                   if sol is not None and sol.metric else _arbitrary_scale_text(sol, config)),
+        # the focal length: given by camera.json, or estimated from the Manhattan vanishing points (lines/focal.py);
+        # focal_px is the one the outputs use (the bundle adjustment may refine it)
+        "focal": _focal_summary(capture, result, sol),
         # the parallax test (linear/baseline.py): detected -> one shared centre, no translation solved
         "zero_baseline": (result.linear.residuals.get("zero_baseline") if result.linear is not None else None),
         "spin_style": (sol.residuals.get("spin_style") if sol is not None and sol is not result.linear else None),
@@ -415,6 +443,20 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
                                                 for b in result.batches]
     summary["seconds"]["total"] = round(time.perf_counter() - t_start, 3)
     return summary
+
+
+def _focal_summary(capture: Capture, result: RunResult, sol: Solution | None) -> dict[str, Any]:
+    """Returns where the focal length came from and its value (px, and as a horizontal field of view)."""
+    from .capture.camera import hfov_deg
+
+    cam = sol.camera if sol is not None else capture.camera
+    out: dict[str, Any] = {"given": bool(capture.focal_given), "focal_px": float(cam.K[0, 0]),
+                           "hfov_deg": hfov_deg(float(cam.K[0, 0]), cam.width)}
+    est = result.focal
+    if est is not None:
+        out["estimated"] = {"focal_px": est.focal_px, "hfov_deg": est.hfov_deg, "cost": est.cost,
+                            "sharpness": est.sharpness, "frames": est.frames, "segments": est.segments}
+    return out
 
 
 def _relations_kept(relations: Relations | None, sol: Solution | None) -> dict[str, int]:

@@ -7,6 +7,7 @@ image.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -20,10 +21,15 @@ from .validate import _first_line, _is_number
 
 N_PARAMS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "OPENCV": 8}
 FOCAL_RANGE_FRAC = (0.2, 10.0)  # plausible focal length, as a fraction of the image width
+PROVISIONAL_HFOV_DEG = 65.0  # a capture without a focal length is loaded with this field of view (then estimated)
 
 
 def read_camera(path: str | Path) -> tuple[Camera, float | None]:
-    """Returns the camera of ``camera.json`` (COLMAP model and parameter order) and its ``fps`` (or None)."""
+    """Returns the camera of ``camera.json`` (COLMAP model and parameter order) and its ``fps`` (or None).
+
+    Without ``params`` (PINHOLE / SIMPLE_PINHOLE only) the focal length is unknown: NaN, the principal point
+    the image centre (:func:`focal_known`; the pipeline estimates it, ``lines/focal.py``).
+    """
     path = Path(path)
     if not path.is_file():
         raise InputError("missing (every capture needs camera.json)", path)
@@ -46,6 +52,13 @@ def read_camera(path: str | Path) -> tuple[Camera, float | None]:
             raise InputError(f"'{key}' must be a positive integer, got {v!r}", path)
         size.append(int(v))
     params = data.get("params")
+    if params is None:  # the focal length is not known: NaN until the pipeline estimates it
+        if model == "OPENCV":
+            raise InputError("OPENCV needs its 'params' (distortion); omit them only for PINHOLE or SIMPLE_PINHOLE",
+                             path)
+        w, h = size
+        params = [math.nan] * (1 if model == "SIMPLE_PINHOLE" else 2) + [(w - 1) / 2.0, (h - 1) / 2.0]
+        return Camera(model, w, h, np.asarray(params, dtype=np.float64)), _fps(data, path)
     if not isinstance(params, list) or not all(_is_number(p) for p in params):
         raise InputError(f"'params' must be a list of numbers, got {params!r}", path)
     if len(params) != N_PARAMS[model]:
@@ -65,12 +78,22 @@ def read_camera(path: str | Path) -> tuple[Camera, float | None]:
     cx, cy = params[1:3] if model == "SIMPLE_PINHOLE" else params[2:4]
     if not (-0.5 <= cx <= w - 0.5 and -0.5 <= cy <= h - 0.5):
         raise InputError(f"principal point ({cx:g}, {cy:g}) lies outside the {w}x{h} image", path)
+    return Camera(model, size[0], size[1], params), _fps(data, path)
+
+
+def _fps(data: dict, path: Path) -> float | None:
+    """Returns camera.json's optional ``fps``."""
     fps = data.get("fps")
     if fps is not None:
         if not _is_number(fps) or not math.isfinite(fps) or fps <= 0:
             raise InputError(f"'fps' must be a positive number, got {fps!r}", path)
         fps = float(fps)
-    return Camera(model, size[0], size[1], params), fps
+    return fps
+
+
+def focal_known(camera: Camera) -> bool:
+    """Returns whether ``camera.json`` gave the focal length (``params`` omitted: NaN, estimated by the pipeline)."""
+    return bool(np.all(np.isfinite(camera.params)))
 
 
 def working_camera(camera: Camera, scale: float = 1.0) -> Camera:
@@ -152,3 +175,25 @@ class _Warp:
             interp = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
             img = cv2.remap(img, m1, m2, interp, borderMode=cv2.BORDER_CONSTANT)
         return img
+
+
+def hfov_deg(focal_px: float, width: int) -> float:
+    """Returns the horizontal field of view (deg) of a centred pinhole camera."""
+    return float(np.degrees(2.0 * np.arctan(0.5 * width / focal_px)))
+
+
+def focal_from_hfov(hfov: float, width: int) -> float:
+    """Returns the focal length (px) of a centred pinhole camera with this horizontal field of view (deg)."""
+    return float(0.5 * width / np.tan(np.radians(hfov) / 2.0))
+
+
+def with_focal(camera: Camera, focal_px: float) -> Camera:
+    """Returns ``camera`` with fx = ``focal_px`` and fy keeping the aspect fy / fx (1 where unknown); the principal
+    point and distortion kept."""
+    p = np.array(camera.params, dtype=np.float64)
+    if camera.model == "SIMPLE_PINHOLE":
+        p[0] = focal_px
+    else:
+        aspect = p[1] / p[0] if np.isfinite(p[0]) and np.isfinite(p[1]) and p[0] > 0 else 1.0
+        p[0], p[1] = focal_px, focal_px * aspect
+    return dataclasses.replace(camera, params=p)

@@ -82,7 +82,9 @@ def format_inspection(info: dict[str, Any]) -> str:
     cov = imu["coverage"]
     span = info["time_span_s"] or [0.0, 0.0]
     model = info["camera_model"]
-    params = ", ".join(f"{p:g}" for p in info["params"])
+    params = ", ".join("?" if p != p else f"{p:g}" for p in info["params"])  # NaN: the focal length is not given
+    if any(p != p for p in info["params"]):
+        params += "; focal length unknown: panosfm run estimates it"
     rows = [
         ("capture", info["path"]),
         ("frames", f"{info['frames']} from {info['source']}"),

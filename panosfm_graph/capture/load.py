@@ -14,7 +14,7 @@ import numpy as np
 from ..config import CaptureConfig, Config
 from ..data import Capture
 from ..errors import InputError
-from .camera import _Warp, read_camera, working_camera
+from .camera import PROVISIONAL_HFOV_DEG, _Warp, focal_from_hfov, focal_known, read_camera, with_focal, working_camera
 from .frames import _frame_reader, _read_source, _timestamps
 from .ground_truth import _read_ground_truth
 from .imu import check_imu_rate, imu_at_frames, read_imu, turn_span_deg
@@ -51,6 +51,8 @@ def load_capture(path: str | Path, config: CaptureConfig | Config = CaptureConfi
     R_wc = imu_at_frames(imu_path, t_imu, R_imu, t, t_from)
 
     work = working_camera(raw_camera, config.scale)
+    if not focal_known(work):  # a provisional focal length until the pipeline estimates it (lines/focal.py)
+        work = with_focal(work, focal_from_hfov(PROVISIONAL_HFOV_DEG, work.width))
     warp = _Warp(raw_camera, work)
     reader = _frame_reader(source, take, raw_camera, warp, camera_json)
     stems = tuple(source.stems[k] for k in take)
@@ -60,7 +62,7 @@ def load_capture(path: str | Path, config: CaptureConfig | Config = CaptureConfi
              root, len(take), len(source.names), source.kind, work.width, work.height, raw_camera.model,
              t_from, len(t_imu))
     return Capture(root=root, camera=work, frame_names=tuple(source.names[k] for k in take), timestamps=t,
-                   R_wc_imu=R_wc, ground_truth=gt, reader=reader)
+                   R_wc_imu=R_wc, ground_truth=gt, reader=reader, focal_given=focal_known(raw_camera))
 
 
 def capture_warnings(capture: Capture, config: CaptureConfig | Config = CaptureConfig()) -> list[str]:

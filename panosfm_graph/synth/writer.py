@@ -160,7 +160,7 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
                turn_deg: float = 380.0, texture: float = 1.0, blur: float = 0.0, noise: float = 0.0,
                gt_maps: bool = True, workers: int = 2, fps: float = 30.0,
                imu_noise_deg: float = 0.1, sway_m: float = 0.0, exposure_s: float = 0.0,
-               arm_m: float | None = None) -> Path:
+               arm_m: float | None = None, hfov_deg: float | None = None) -> Path:
     """Returns the path of a new synthetic spin capture of ``scene`` written to ``out_dir``.
 
     ``size`` is (width, height) px; ``seed`` seeds the spin, IMU noise, image
@@ -175,7 +175,8 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
     is the exposure times the camera's angular speed at that frame, in pixels at the
     focal length (:func:`motion_blur_px`): a fast spin blurs, a slow one does not.
     ``arm_m``: the spin circle's radius (None: seeded 0.30-0.40 m); 0 is a tripod spin with
-    one optical centre (zero baseline), which cannot sway.
+    one optical centre (zero baseline), which cannot sway. ``hfov_deg``: the camera's horizontal field of
+    view (None: fx = 0.8 width, 64 degrees).
     Raises :class:`InputError` for an existing non-empty ``out_dir`` or bad settings.
     """
     out = Path(out_dir)
@@ -190,7 +191,9 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
         raise InputError("a tripod spin (arm 0) cannot sway: give --arm 0 or --sway, not both")
     n_frames, size, seed = int(n_frames), (int(size[0]), int(size[1])), int(seed)
     sc = make_scene(scene, seed)
-    K = intrinsics(size)
+    if hfov_deg is not None and not (np.isfinite(hfov_deg) and 10.0 <= hfov_deg <= 150.0):
+        raise InputError(f"hfov_deg must be between 10 and 150 degrees, got {hfov_deg}")
+    K = intrinsics(size) if hfov_deg is None else intrinsics(size, 0.5 / np.tan(np.radians(hfov_deg) / 2.0))
     R_wc, centers, ts = spin_trajectory(sc, n_frames, seed=seed, turn_deg=turn_deg, fps=fps, sway_m=sway_m,
                                         arm_m=arm_m)
     t_imu, R_imu = imu_stream(sc, n_frames, seed=seed, turn_deg=turn_deg, fps=fps, imu_drift_deg=imu_drift_deg,
@@ -201,7 +204,8 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
                         imu_noise_deg=imu_noise_deg, turn_deg=turn_deg, texture=texture, blur=blur, noise=noise,
                         fps=fps, gt_maps=bool(gt_maps), sway_m=sway_m,
                         **({"exposure_s": exposure_s} if exposure_s > 0 else {}),
-                        **({"arm_m": float(arm_m)} if arm_m is not None else {}))
+                        **({"arm_m": float(arm_m)} if arm_m is not None else {}),
+                        **({"hfov_deg": float(hfov_deg)} if hfov_deg is not None else {}))
         lines, labels = sc.edges()
         write_capture_tables(tmp, K, size, fps, ts, t_imu, R_imu, R_wc, centers,
                              {"generator": "panosfm_graph.synth", **settings}, lines, labels, sc.to_json())
