@@ -85,6 +85,12 @@ class RotationConfig:
     # drift fit weighs each frame with horizontal lines alike ("frames"), not by line length ("length": one object's
     # lines bias its frames alike); see docs/decisions.md#heading-held-by-the-imu
     drift_weights: str = "frames"
+    # option: frames with fewer horizontal Manhattan segments than this do not enter the drift fit (1: every frame
+    # with one); brittle on the real cuts, see docs/decisions.md#drift-fit-without-feedback
+    drift_min_horizontal: int = 1
+    # the preprocessing iterations refine against the drift-corrected IMU (True) or the raw one, the correction used
+    # only by the last refinement (False); see docs/decisions.md#drift-fit-without-feedback
+    drift_feedback: bool = False
     # frames a turn apart whose optical axes lie within this (deg) give the drift between them (0: off); see
     # docs/decisions.md#drift-between-the-spins-ends
     drift_loop_deg: float = 3.0

@@ -32,7 +32,9 @@ def refine_manhattan_and_rotations(segments: Segments, capture: Capture, config:
     Starting from the IMU rotations, repeats ``config.manhattan.iterations``
     times: Manhattan frame extraction (axes kept consistent with the
     previous round), Manhattan labelling (85 degree rule), rotation
-    refinement (Eq. 1, warm-started); the final labels use the final
+    refinement (Eq. 1, warm-started, against the raw IMU's relative rotations:
+    the heading-drift fit must not see its own previous estimate); the last
+    refinement uses the drift-corrected IMU; the final labels use the final
     rotations. Raises :class:`TooFewLinesError` when the scene has too few
     Manhattan segments.
     """
@@ -47,10 +49,15 @@ def refine_manhattan_and_rotations(segments: Segments, capture: Capture, config:
         mf = manhattan_frame(segments, K, R, config.manhattan, reference=mf)
         labels = label_segments(segments, K, R, mf, config.manhattan)
         check_enough_manhattan(labels, config.manhattan)
-        R = refine_rotations(segments, labels, K, R_prior, mf, config.rotation, R_wc_init=R)
+        # with drift_feedback off the loop's refinements keep the raw IMU's relative rotations, so the drift fit
+        # never sees its own previous estimate in frames whose lines do not fix their heading
+        R = refine_rotations(segments, labels, K, R_prior if config.rotation.drift_feedback else R_imu, mf,
+                             config.rotation, R_wc_init=R)
         if config.rotation.drift_degree >= 0:
             horizontal = (labels >= 0) & (labels != 2)
             weight = np.bincount(segments.frame[horizontal], segments.lengths[horizontal], minlength=capture.n_frames)
+            count = np.bincount(segments.frame[horizontal], minlength=capture.n_frames)
+            weight[count < config.rotation.drift_min_horizontal] = 0.0  # too few to fix the frame's heading
             if config.rotation.drift_weights == "frames":  # each frame with horizontal lines counts once
                 weight = (weight > 0).astype(np.float64)
             ends = loop_pairs(R, config.rotation.drift_loop_deg)  # a turn apart, looking the same way
