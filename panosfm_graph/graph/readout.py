@@ -32,6 +32,17 @@ def line_extents(taylor: np.ndarray, direction: np.ndarray, endpoints: np.ndarra
     return out
 
 
+def track_extents(s: np.ndarray, track: np.ndarray, n_tracks: int) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((T, 2) the smallest and largest line coordinate over each track's observations, (T,) bool where
+    finite): ``s`` (N, 2) the observations' end-point coordinates (:func:`line_extents`; NaN ignored)."""
+    s = np.where(np.isfinite(s), s, np.nan)
+    lo = np.full(n_tracks, np.inf)
+    hi = np.full(n_tracks, -np.inf)
+    np.minimum.at(lo, track, np.nanmin(s, axis=1, initial=np.inf))
+    np.maximum.at(hi, track, np.nanmax(s, axis=1, initial=-np.inf))
+    return np.c_[lo, hi], np.isfinite(lo) & np.isfinite(hi)
+
+
 def _solution(pre: Preprocessed, tracks: Tracks, initial: Solution, prob: _Problem, values: gtsam.Values,
               R_wc: np.ndarray, camera: Camera, residuals: dict) -> Solution:
     """Returns the Solution read from ``values`` (Lambda projected onto its direction's normal plane, extents from observations)."""
@@ -47,13 +58,8 @@ def _solution(pre: Preprocessed, tracks: Tracks, initial: Solution, prob: _Probl
         t = prob.obs_track
         s = line_extents(taylor[t], prob.directions[t], pre.segments.endpoints[prob.obs_seg].astype(np.float64),
                          R_wc[prob.obs_frame], centers[prob.obs_frame], camera.K)
-        s = np.where(np.isfinite(s), s, np.nan)
-        lo = np.full(tracks.n, np.inf)
-        hi = np.full(tracks.n, -np.inf)
-        np.minimum.at(lo, t, np.nanmin(s, axis=1, initial=np.inf))
-        np.maximum.at(hi, t, np.nanmax(s, axis=1, initial=-np.inf))
-        ok = np.isfinite(lo) & np.isfinite(hi)
-        extent[ok] = np.c_[lo[ok], hi[ok]]
+        lo_hi, ok = track_extents(s, t, tracks.n)
+        extent[ok] = lo_hi[ok]
     valid = initial.lines.valid.copy()
     residuals["colinearity_rms_m"] = float(np.sqrt(np.mean(np.sum(raw * A, axis=1) ** 2))) if len(raw) else 0.0
     lines = LineModel(taylor=taylor, direction=direction, axis=tracks.axis.copy(), extent=extent, valid=valid)

@@ -33,7 +33,7 @@ from ..geometry import rotation_angle_deg, world_rays
 from .lm import levenberg_marquardt
 from .factor_graph import GAUGE_SIGMA
 from .problem import center_key, line_key, rotation_key
-from .readout import line_extents
+from .readout import line_extents, track_extents
 
 log = logging.getLogger("panosfm.graph")
 
@@ -136,12 +136,8 @@ def rotation_bundle_adjust(pre: Preprocessed, tracks: Tracks, initial: Solution,
         return _with(initial, res)
     extent = np.zeros((tracks.n, 2))
     s = np.clip(line_extents(taylor[obs_track], A[obs_track], ep, R[obs_frame], zeros, K), -MAX_EXTENT, MAX_EXTENT)
-    lo = np.full(tracks.n, np.inf)
-    hi = np.full(tracks.n, -np.inf)
-    np.minimum.at(lo, obs_track, np.nanmin(np.where(np.isfinite(s), s, np.inf), axis=1))
-    np.maximum.at(hi, obs_track, np.nanmax(np.where(np.isfinite(s), s, -np.inf), axis=1))
-    ok = np.isfinite(lo) & np.isfinite(hi)
-    extent[ok] = np.c_[lo[ok], hi[ok]]
+    lo_hi, ok = track_extents(s, obs_track, tracks.n)
+    extent[ok] = lo_hi[ok]
     valid = np.zeros(tracks.n, bool)
     valid[lines] = True
     valid &= ok
