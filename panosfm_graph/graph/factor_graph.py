@@ -22,6 +22,15 @@ GAUGE_SIGMA = 1e-4  # m: priors fixing the first centre and the scale
 FOCAL_PRIOR_FRAC = 0.1  # phase 3: weak prior on the focal length, sigma = this * calibrated focal
 
 
+def widened_robust_k(config: GraphConfig, k: float, rms_initial_px: float) -> float:
+    """Returns the reprojection kernel's threshold (sigmas) of a first solve: ``k`` widened to
+    ``reprojection_robust_widen`` times the initial RMS residual, at most ``reprojection_robust_k_max``."""
+    wide = config.reprojection_robust_widen * rms_initial_px / config.reprojection_sigma_px
+    if not np.isfinite(wide):
+        return k
+    return float(np.clip(wide, k, max(k, config.reprojection_robust_k_max)))
+
+
 def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase: int, R_fixed: np.ndarray,
                  K: np.ndarray, rel_mask: np.ndarray, config: GraphConfig, gauge: dict,
                  batched: bool = False) -> tuple[gtsam.NonlinearFactorGraph, dict, list]:
@@ -43,10 +52,7 @@ def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase:
     ks = tuple(config.reprojection_robust_k) or (0.0,)
     rep_k = float(ks[min(phase, len(ks)) - 1])
     if phase == 1 and rep_k > 0:  # graduated: at first as wide as the initial residuals
-        wide = config.reprojection_robust_widen * gauge.get("reprojection_rms_initial", 0.0)
-        wide /= config.reprojection_sigma_px
-        if np.isfinite(wide):
-            rep_k = float(np.clip(wide, rep_k, max(rep_k, config.reprojection_robust_k_max)))
+        rep_k = widened_robust_k(config, rep_k, gauge.get("reprojection_rms_initial", 0.0))
     rep_robust = config.reprojection_robust if rep_k > 0 else "none"
     if config.reprojection and len(prob.obs_seg):
         fr = prob.obs_frame

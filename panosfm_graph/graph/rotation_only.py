@@ -19,6 +19,7 @@ with the preprocessed rotations, those are kept and ``residuals["kept_preprocess
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 
@@ -30,8 +31,8 @@ import factors
 from ..config import GraphConfig
 from ..data import LineModel, Preprocessed, Solution, Tracks
 from ..geometry import rotation_angle_deg, world_rays
+from .factor_graph import GAUGE_SIGMA, widened_robust_k
 from .lm import levenberg_marquardt
-from .factor_graph import GAUGE_SIGMA
 from .problem import center_key, line_key, rotation_key
 from .readout import line_extents, track_extents
 
@@ -83,8 +84,12 @@ def rotation_bundle_adjust(pre: Preprocessed, tracks: Tracks, initial: Solution,
     R0 = np.asarray(pre.R_wc, dtype=np.float64)
     ep = pre.segments.endpoints[obs_seg].astype(np.float64)
     zeros = np.zeros((len(obs_seg), 3))
-    r0 = factors.reprojection_terms(ep, A[obs_track], taylor0[obs_track], zeros, R0[obs_frame], K)
-    rms0 = float(np.sqrt(np.mean(np.sum(r0 ** 2, axis=1))))
+
+    def rms(taylor: np.ndarray, R: np.ndarray) -> float:  # RMS segment-averaged reprojection distance (px)
+        r = factors.reprojection_terms(ep, A[obs_track], taylor[obs_track], zeros, R[obs_frame], K)
+        return float(np.sqrt(np.mean(np.sum(r ** 2, axis=1))))
+
+    rms0 = rms(taylor0, R0)
 
     values = gtsam.Values()
     for i in range(F):
@@ -108,10 +113,9 @@ def rotation_bundle_adjust(pre: Preprocessed, tracks: Tracks, initial: Solution,
                                                   pre.R_wc_imu[i + 1], noise))
     ks = tuple(config.reprojection_robust_k) or (0.0,)
     k_final = float(ks[-1])
-    wide = config.reprojection_robust_widen * rms0 / config.reprojection_sigma_px
-    k_first = float(np.clip(wide, k_final, max(k_final, config.reprojection_robust_k_max))) if k_final > 0 else 0.0
+    k_first = widened_robust_k(config, k_final, rms0) if k_final > 0 else 0.0
     info = {}
-    for phase, k in enumerate((k_first, k_final), start=1):  # graduated: as wide as the initial residuals, then k
+    for k in (k_first, k_final):  # graduated: as wide as the initial residuals, then k
         robust = config.reprojection_robust if k > 0 else "none"
         rep = factors.LineReprojectionSet([line_key(int(t)) for t in obs_track], [center_key(0)] * len(obs_seg), ep,
                                           A[obs_track], K, config.reprojection_sigma_px,
@@ -123,8 +127,7 @@ def rotation_bundle_adjust(pre: Preprocessed, tracks: Tracks, initial: Solution,
     taylor = np.zeros((tracks.n, 3))
     raw = factors.taylor_from_point_direction(raw, A[lines])
     taylor[lines] = ASSUMED_DISTANCE * raw / np.maximum(np.linalg.norm(raw, axis=1, keepdims=True), 1e-12)
-    r1 = factors.reprojection_terms(ep, A[obs_track], taylor[obs_track], zeros, R[obs_frame], K)
-    rms1 = float(np.sqrt(np.mean(np.sum(r1 ** 2, axis=1))))
+    rms1 = rms(taylor, R)
     moved = rotation_angle_deg(R, R0)
     res.update(reprojection_rms_initial=rms0, reprojection_rms=rms1, iterations=int(info.get("iterations", 0)),
                rotation_change_deg={"median": float(np.median(moved)), "max": float(np.max(moved))},
@@ -151,6 +154,4 @@ def rotation_bundle_adjust(pre: Preprocessed, tracks: Tracks, initial: Solution,
 
 def _with(initial: Solution, res: dict) -> Solution:
     """Returns ``initial`` with the zero-baseline BA's residuals (nothing refined)."""
-    import dataclasses
-
     return dataclasses.replace(initial, residuals=res)

@@ -46,9 +46,10 @@ def parallax_px(pre: Preprocessed, tracks: Tracks, camera: Camera, min_turn_deg:
     K = camera.K
     axis = tracks.axis[tid].astype(np.int64)
     heading = frame_headings_deg(R, M)[pre.segments.frame[seg]]
-    span = (np.maximum.reduceat(heading, offsets[:-1][count > 0]) - np.minimum.reduceat(heading, offsets[:-1][count > 0]))
+    seen = count > 0
+    starts = offsets[:-1][seen]
     turn = np.zeros(tracks.n)
-    turn[count > 0] = span
+    turn[seen] = np.maximum.reduceat(heading, starts) - np.minimum.reduceat(heading, starts)
     use = (count >= min_obs) & (turn >= min_turn_deg)
     if not np.any(use):
         return float("nan"), float("nan"), 0

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import minimize_scalar
+from scipy.spatial.transform import Rotation
 
 from ..capture.camera import focal_from_hfov, hfov_deg, with_focal
 from ..config import FocalConfig
@@ -78,7 +79,7 @@ def manhattan_cost(segments: Segments, camera: Camera, R_wc: np.ndarray, directi
         g[:, :2] += tilt_acc / s_g ** 2
         delta = -np.linalg.solve(H, g[:, :, None])[:, :, 0]
         tilt_acc += delta[:, :2]
-        R = _exp(delta) @ R
+        R = Rotation.from_rotvec(delta).as_matrix() @ R
     # the cost in pixels (angles favour a long focal length: every plane then passes near the faced direction):
     # each segment's end-point distance from the line joining its mid-point and its vanishing point
     x = np.einsum("sij,sj->si", R[fr], n_cam)
@@ -90,17 +91,6 @@ def manhattan_cost(segments: Segments, camera: Camera, R_wc: np.ndarray, directi
     e = np.abs(line[:, 0] * ep[:, 0] + line[:, 1] * ep[:, 1] + line[:, 2]) / np.maximum(np.hypot(line[:, 0], line[:, 1]), 1e-12)
     t = config.truncate_px
     return float(np.sum(w_len * np.minimum(e, t) ** 2) / np.sum(w_len) / t ** 2)
-
-
-def _exp(v: np.ndarray) -> np.ndarray:
-    """Returns (N, 3, 3) rotation matrices Exp(v) (Rodrigues)."""
-    theta = np.linalg.norm(v, axis=1)
-    k = v / np.maximum(theta, 1e-12)[:, None]
-    Kx = np.zeros((len(v), 3, 3))
-    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-    Kx[:, 1, 0], Kx[:, 2, 0], Kx[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
-    s, c = np.sin(theta)[:, None, None], np.cos(theta)[:, None, None]
-    return np.eye(3)[None] + s * Kx + (1.0 - c) * (Kx @ Kx)
 
 
 def _subset(segments: Segments, R_wc: np.ndarray, max_frames: int) -> tuple[Segments, np.ndarray]:
