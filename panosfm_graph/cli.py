@@ -5,7 +5,9 @@ command     Python function
 ==========  ==============================================================
 run         ``panosfm_graph.pipeline.run_pipeline``
 demo        ``panosfm_graph.pipeline.run_demo``
-synth       ``panosfm_graph.synth.synthesize``; with ``--panorama`` ``panosfm_graph.synth.cut_spin``
+synth       ``panosfm_graph.synth.synthesize``; with ``--panorama`` ``panosfm_graph.synth.cut_spin``;
+            ``--phone`` ``panosfm_graph.synth.phone_recording``
+import      ``panosfm_graph.phone.import_capture``
 inspect     ``panosfm_graph.capture.inspect_capture``
 eval        ``panosfm_graph.evaluate.evaluate_reconstruction``
 ablate      ``panosfm_graph.ablation.run_ablation``
@@ -31,6 +33,7 @@ from .config import SPIN_STYLES, Config, with_overrides, with_spin_style
 from .errors import InputError
 
 EXIT_BAD_INPUT = 2
+FORMAT_CHOICES = ("auto", "generic", "sensor-logger", "phyphox")  # panosfm_graph.phone.FORMATS (imported lazily)
 
 
 def _parse_size(text: str) -> tuple[int, int]:
@@ -188,7 +191,8 @@ def _or(value, default):
 
 def _cmd_synth(args: argparse.Namespace) -> int:
     scene_only = {"--scene": args.scene, "--texture": args.texture, "--blur": args.blur, "--exposure": args.exposure,
-                  "--noise": args.noise, "--sway": args.sway, "--arm": args.arm, "--no-gt-maps": args.no_gt_maps or None}
+                  "--noise": args.noise, "--sway": args.sway, "--arm": args.arm, "--no-gt-maps": args.no_gt_maps or None,
+                  "--tremor": args.tremor, "--phone": args.phone}
     pano_only = {"--layout": args.layout, "--wobble": args.wobble, "--imu-noise": args.imu_noise}
     if args.panorama is not None:
         given = [k for k, v in scene_only.items() if v is not None]
@@ -205,14 +209,31 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     given = [k for k, v in pano_only.items() if v is not None]
     if given:
         raise InputError(f"{', '.join(given)}: only with --panorama")
+    if args.phone is not None and Path(args.phone).exists() and any(Path(args.phone).iterdir()):
+        raise InputError("exists and is not empty", args.phone)
     from .synth import synthesize
 
     path = synthesize(args.out, scene=_or(args.scene, "living"), n_frames=_or(args.frames, 300),
                       size=_or(args.size, (960, 540)), seed=args.seed, imu_drift_deg=args.imu_drift,
                       turn_deg=_or(args.turn, 380.0), texture=_or(args.texture, 1.0), sway_m=_or(args.sway, 0.0),
                       blur=_or(args.blur, 0.0), noise=_or(args.noise, 0.0), gt_maps=not args.no_gt_maps,
-                      exposure_s=_or(args.exposure, 0.0), arm_m=args.arm, hfov_deg=args.hfov)
+                      exposure_s=_or(args.exposure, 0.0), arm_m=args.arm, hfov_deg=args.hfov,
+                      tremor_deg=_or(args.tremor, 0.0))
     print(f"wrote {path}")
+    if args.phone is not None:
+        from .synth import phone_recording
+
+        print(f"wrote {phone_recording(path, args.phone, seed=args.seed)} (video.mp4, sensors/: panosfm import "
+              f"{Path(args.phone) / 'video.mp4'} {Path(args.phone) / 'sensors'} OUT)")
+    return 0
+
+
+def _cmd_import(args: argparse.Namespace) -> int:
+    from .phone import format_import, import_capture
+
+    res = import_capture(args.video, args.sensors, args.out, fmt=args.format, focal_px=args.focal,
+                         hfov_deg=args.hfov, offset_guess_s=args.offset_guess, max_offset_s=args.max_offset)
+    print(format_import(res))
     return 0
 
 
@@ -266,6 +287,26 @@ def _cmd_view(args: argparse.Namespace) -> int:
     path = Path(args.out)
     view_recording(path / "recording.rrd" if path.is_dir() else path)
     return 0
+
+
+def _add_import_parser(sub) -> None:
+    m = sub.add_parser("import", help="build a capture from a phone video and its raw gyroscope/accelerometer log",
+                       description="Build a capture directory from a phone video and its raw sensor log: the time "
+                                   "offset and the camera's axes are found from the images, the attitude from a "
+                                   "GTSAM AHRS smoother (docs/import.md).")
+    m.add_argument("video")
+    m.add_argument("sensors", help="sensor log folder or .zip: gyro.csv + accel.csv, a Sensor Logger or a phyphox "
+                                   "export")
+    m.add_argument("out", help="capture directory to write (must not exist or be empty)")
+    m.add_argument("--format", default="auto", choices=FORMAT_CHOICES, help="sensor log layout (default: detected)")
+    m.add_argument("--focal", type=float, default=None, metavar="PX",
+                   help="focal length in pixels (default: none in camera.json; panosfm run estimates it)")
+    m.add_argument("--hfov", type=float, default=None, metavar="DEG", help="horizontal field of view instead of --focal")
+    m.add_argument("--offset-guess", type=float, default=None, metavar="S",
+                   help="sensor clock minus video clock, roughly (default: from a Sensor Logger video's name, else 0)")
+    m.add_argument("--max-offset", type=float, default=5.0, metavar="S",
+                   help="search the offset within the guess +- this (default 5)")
+    m.set_defaults(func=_cmd_import)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -328,7 +369,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="radius of the circle the camera centre describes (default: 0.30-0.40 m by seed; "
                         "0 = a tripod spin, zero baseline)")
     s.add_argument("--no-gt-maps", action="store_true", help="skip per-frame ground-truth normals and depth")
+    s.add_argument("--tremor", type=float, default=None, metavar="DEG",
+                   help="RMS angle of a hand's rotational tremor, 2-7 Hz (default 0)")
+    s.add_argument("--phone", default=None, metavar="DIR",
+                   help="also write the capture as a phone would record it to DIR: video.mp4 and raw gyroscope / "
+                        "accelerometer logs (the input of panosfm import)")
     s.set_defaults(func=_cmd_synth)
+
+    _add_import_parser(sub)
 
     i = sub.add_parser("inspect", help="describe a capture: frames, resolution, IMU coverage, ground truth")
     i.add_argument("capture")

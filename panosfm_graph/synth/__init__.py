@@ -7,16 +7,19 @@ ground_truth/). The pieces are usable alone: :func:`make_scene` /
 :func:`imu_stream` (drifting IMU attitude), :func:`render_frame` (colour,
 depth, normals of one view). ``cut_spin(panorama, out_dir)`` writes a
 rotation-only spin capture cut from an equirectangular panorama (:mod:`.panorama`).
+``phone_recording(capture, out)`` re-expresses a capture as a phone video with raw
+gyroscope and accelerometer logs (:mod:`.phone`).
 """
 from .scenes import SCENES, Faces, Scene, make_scene, scene_from_json, yaw_matrix
 from .trajectory import SpinParams, imu_stream, spin_params, spin_pose, spin_trajectory
 from .render import intrinsics, raycast, render_frame
 from .writer import frame_name, synthesize
 from .panorama import cut_spin, read_layout, read_panorama, render_view
+from .phone import phone_recording
 
 __all__ = [
     "SCENES", "Faces", "Scene", "make_scene", "scene_from_json", "yaw_matrix",
     "SpinParams", "imu_stream", "spin_params", "spin_pose", "spin_trajectory",
     "intrinsics", "raycast", "render_frame", "frame_name", "synthesize",
-    "cut_spin", "read_layout", "read_panorama", "render_view",
+    "cut_spin", "read_layout", "read_panorama", "render_view", "phone_recording",
 ]

@@ -49,13 +49,15 @@ class SpinParams:
     duration_s: float  # time of the last frame
     sway_m: float = 0.0  # how far from an ideal circle the spin is (module docstring)
     sway: tuple = ()  # (amplitudes (4, 3), phases (4, 3)): three harmonics of stand x, stand y, arm length, arm angle
+    tremor_deg: float = 0.0  # RMS angle of the hand's rotational tremor (module docstring)
+    tremor: tuple = ()  # (frequencies Hz (3, 3), amplitudes (3, 3), phases (3, 3)): per camera axis, three sinusoids
 
 
 _SWAY_CYCLES = np.array([0.55, 1.35, 2.2])  # cycles per sweep of the sway's three harmonics (not periodic)
 
 
 def spin_params(scene: Scene, n_frames: int, seed: int = 0, turn_deg: float = 380.0, fps: float = 30.0,
-                sway_m: float = 0.0, arm_m: float | None = None) -> SpinParams:
+                sway_m: float = 0.0, arm_m: float | None = None, tremor_deg: float = 0.0) -> SpinParams:
     """Returns the seeded spin parameters for ``scene`` (the same seed gives the same spin).
 
     ``arm_m``: the circle's radius (None: seeded); 0 also stops the bob (a tripod).
@@ -64,7 +66,12 @@ def spin_params(scene: Scene, n_frames: int, seed: int = 0, turn_deg: float = 38
     sway_rng = np.random.default_rng([int(seed), 4243])  # its own stream: sway_m = 0 leaves the rest unchanged
     amp = sway_rng.normal(size=(4, 3)) / np.arange(1, 4)[None]
     phase = sway_rng.uniform(0, 2 * np.pi, (4, 3))
+    tremor_rng = np.random.default_rng([int(seed), 4244])
+    tremor = (tremor_rng.uniform(2.0, 7.0, (3, 3)), tremor_rng.uniform(0.5, 1.0, (3, 3)),
+              tremor_rng.uniform(0, 2 * np.pi, (3, 3)))
     p = SpinParams(
+        tremor_deg=float(tremor_deg),
+        tremor=tremor,
         sway_m=float(sway_m),
         sway=(amp, phase),
         stand_world=scene.stand_point_world.astype(np.float64),
@@ -106,7 +113,17 @@ def spin_pose(p: SpinParams, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     roll = np.radians(p.roll_deg[0] + p.roll_deg[1] * np.sin(2 * np.pi * p.roll_deg[2] * s + p.roll_deg[3]))
     # pitch about the camera x axis (positive looks up), then roll about the optical axis
     R_local = Rotation.from_euler("XZ", np.stack([pitch, roll], axis=1)).as_matrix()
+    if p.tremor_deg > 0:
+        R_local = R_local @ Rotation.from_rotvec(_tremor(p, t)).as_matrix()
     return R_level @ R_local, centers
+
+
+def _tremor(p: SpinParams, t: np.ndarray) -> np.ndarray:
+    """Returns (N, 3) the tremor's rotation vectors (rad, camera axes) at times ``t``: RMS angle ``p.tremor_deg``."""
+    freq, amp, phase = p.tremor
+    waves = amp[None] * np.sin(2 * np.pi * freq[None] * t[:, None, None] + phase[None])  # (N, axis, sinusoid)
+    rms = np.sqrt(np.sum(amp ** 2) / 2)  # of the angle: sinusoids of distinct frequencies add in power
+    return np.radians(p.tremor_deg) * waves.sum(axis=2) / rms
 
 
 def _sway(p: SpinParams, s: np.ndarray) -> np.ndarray:
@@ -126,7 +143,7 @@ def _sway(p: SpinParams, s: np.ndarray) -> np.ndarray:
 
 
 def spin_trajectory(scene: Scene, n_frames: int, seed: int = 0, turn_deg: float = 380.0,
-                    fps: float = 30.0, sway_m: float = 0.0, arm_m: float | None = None
+                    fps: float = 30.0, sway_m: float = 0.0, arm_m: float | None = None, tremor_deg: float = 0.0
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Returns (R_wc (F, 3, 3), centres (F, 3), timestamps (F,)) of a person's spin at ``fps``.
 
@@ -135,7 +152,7 @@ def spin_trajectory(scene: Scene, n_frames: int, seed: int = 0, turn_deg: float 
     a small circle): world_from_camera rotations, camera centres in metres,
     timestamps ``i / fps`` seconds.
     """
-    p = spin_params(scene, n_frames, seed, turn_deg, fps, sway_m, arm_m)
+    p = spin_params(scene, n_frames, seed, turn_deg, fps, sway_m, arm_m, tremor_deg)
     ts = np.arange(n_frames, dtype=np.float64) / float(fps)
     R, c = spin_pose(p, ts)
     return R, c, ts
@@ -143,10 +160,10 @@ def spin_trajectory(scene: Scene, n_frames: int, seed: int = 0, turn_deg: float 
 
 def imu_stream(scene: Scene, n_frames: int, seed: int = 0, turn_deg: float = 380.0, fps: float = 30.0,
                imu_drift_deg: float = 3.0, noise_deg: float = 0.1, rate_hz: float = 100.0, sway_m: float = 0.0,
-               arm_m: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+               arm_m: float | None = None, tremor_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Returns (timestamps (N,), R_wc (N, 3, 3)): the drifting IMU attitude at ``rate_hz`` of the scene's spin
     (:func:`imu_attitude`)."""
-    p = spin_params(scene, n_frames, seed, turn_deg, fps, sway_m, arm_m)
+    p = spin_params(scene, n_frames, seed, turn_deg, fps, sway_m, arm_m, tremor_deg)
     return imu_attitude(p, n_frames, fps, seed, imu_drift_deg, noise_deg, rate_hz)
 
 

@@ -160,7 +160,7 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
                turn_deg: float = 380.0, texture: float = 1.0, blur: float = 0.0, noise: float = 0.0,
                gt_maps: bool = True, workers: int = 2, fps: float = 30.0,
                imu_noise_deg: float = 0.1, sway_m: float = 0.0, exposure_s: float = 0.0,
-               arm_m: float | None = None, hfov_deg: float | None = None) -> Path:
+               arm_m: float | None = None, hfov_deg: float | None = None, tremor_deg: float = 0.0) -> Path:
     """Returns the path of a new synthetic spin capture of ``scene`` written to ``out_dir``.
 
     ``size`` is (width, height) px; ``seed`` seeds the spin, IMU noise, image
@@ -176,13 +176,14 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
     focal length (:func:`motion_blur_px`): a fast spin blurs, a slow one does not.
     ``arm_m``: the spin circle's radius (None: seeded 0.30-0.40 m); 0 is a tripod spin with
     one optical centre (zero baseline), which cannot sway. ``hfov_deg``: the camera's horizontal field of
-    view (None: fx = 0.8 width, 64 degrees).
+    view (None: fx = 0.8 width, 64 degrees). ``tremor_deg``: RMS angle of a hand's rotational tremor (2-7 Hz;
+    0: none).
     Raises :class:`InputError` for an existing non-empty ``out_dir`` or bad settings.
     """
     out = Path(out_dir)
     _check_args(out, scene, n_frames, size, workers, imu_drift_deg=abs(imu_drift_deg), texture=texture,
                 blur=blur, noise=noise, imu_noise_deg=imu_noise_deg, turn_deg=turn_deg, fps=fps, sway_m=sway_m,
-                exposure_s=exposure_s)
+                exposure_s=exposure_s, tremor_deg=tremor_deg)
     if fps <= 0 or turn_deg <= 0:
         raise InputError(f"fps and turn_deg must be > 0, got fps={fps}, turn_deg={turn_deg}")
     if arm_m is not None and not (np.isfinite(arm_m) and 0.0 <= arm_m <= 2.0):
@@ -195,9 +196,9 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
         raise InputError(f"hfov_deg must be between 10 and 150 degrees, got {hfov_deg}")
     K = intrinsics(size) if hfov_deg is None else intrinsics(size, 0.5 / np.tan(np.radians(hfov_deg) / 2.0))
     R_wc, centers, ts = spin_trajectory(sc, n_frames, seed=seed, turn_deg=turn_deg, fps=fps, sway_m=sway_m,
-                                        arm_m=arm_m)
+                                        arm_m=arm_m, tremor_deg=tremor_deg)
     t_imu, R_imu = imu_stream(sc, n_frames, seed=seed, turn_deg=turn_deg, fps=fps, imu_drift_deg=imu_drift_deg,
-                              noise_deg=imu_noise_deg, sway_m=sway_m, arm_m=arm_m)
+                              noise_deg=imu_noise_deg, sway_m=sway_m, arm_m=arm_m, tremor_deg=tremor_deg)
 
     with atomic_capture_dir(out) as tmp:
         settings = dict(scene=scene, n_frames=n_frames, size=list(size), seed=seed, imu_drift_deg=imu_drift_deg,
@@ -205,7 +206,8 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
                         fps=fps, gt_maps=bool(gt_maps), sway_m=sway_m,
                         **({"exposure_s": exposure_s} if exposure_s > 0 else {}),
                         **({"arm_m": float(arm_m)} if arm_m is not None else {}),
-                        **({"hfov_deg": float(hfov_deg)} if hfov_deg is not None else {}))
+                        **({"hfov_deg": float(hfov_deg)} if hfov_deg is not None else {}),
+                        **({"tremor_deg": float(tremor_deg)} if tremor_deg > 0 else {}))
         lines, labels = sc.edges()
         write_capture_tables(tmp, K, size, fps, ts, t_imu, R_imu, R_wc, centers,
                              {"generator": "panosfm_graph.synth", **settings}, lines, labels, sc.to_json())
