@@ -369,3 +369,108 @@ def test_drift_prior_jacobians_and_semantics(seed):
     on.insert(Sk, np.array([s]))
     np.testing.assert_allclose(f.unwhitenedError(on), 0.0, atol=1e-12)
     np.testing.assert_allclose(factors.drift_times(np.array([0, 5, 10]), 11), [-0.5, 0.0, 0.5])
+
+
+def _shared_frames_problem(rng, n_frames=4, n_lines=5, per_line=3):
+    """Lines seen from frames that share them (so each centre and rotation has several observations), the state
+    off the observations, the focal 2 % off the base K's."""
+    from panosfm_graph.geometry import project
+    K = np.array([[500.0, 0, 320], [0, 480.0, 240], [0, 0, 1]])
+    C = rng.normal(size=(n_frames, 3)) * 0.1
+    R = np.array([Rotation.from_rotvec(rng.normal(size=3) * 0.15).as_matrix() for _ in range(n_frames)])
+    v = gtsam.Values()
+    F = gtsam.symbol("f", 0)
+    v.insert(F, np.array([K[0, 0] * 1.02]))
+    for i in range(n_frames):
+        v.insert(gtsam.symbol("c", i), C[i] + rng.normal(size=3) * 0.02)
+        v.insert(gtsam.symbol("r", i), gtsam.Rot3(R[i] @ Rotation.from_rotvec(rng.normal(size=3) * 0.01).as_matrix()))
+    lk, ck, rk, eps, dirs, Rs = [], [], [], [], [], []
+    for line in range(n_lines):
+        A = np.eye(3)[line % 2]  # x or y: across the cameras' view along +z
+        p = np.array([0.0, 0.0, 3.0]) + rng.normal(size=3) * 0.5
+        lam = taylor_line.taylor_from_point_direction(p, A)
+        v.insert(gtsam.symbol("l", line), lam + rng.normal(size=3) * 0.03)
+        for i in rng.choice(n_frames, per_line, replace=False):
+            uv, _ = project(K, R[i], C[i], np.stack([p - 0.4 * A, p + 0.5 * A]))
+            eps.append(uv.ravel() + rng.normal(size=4) * 2.0)
+            lk.append(gtsam.symbol("l", line))
+            ck.append(gtsam.symbol("c", i))
+            rk.append(gtsam.symbol("r", i))
+            dirs.append(A)
+            Rs.append(R[i])
+    return v, F, K, lk, ck, rk, np.array(eps), np.array(dirs), np.array(Rs)
+
+
+def _damped(gfg, values, lam=0.1):
+    """``gfg`` with lm.levenberg_marquardt's damping: a JacobianFactor sqrt(lam) I on every variable (the gauge
+    freedoms make this problem indeterminate at lam = 1e-3, linearised by the factors or by the set alike)."""
+    out = gtsam.GaussianFactorGraph()
+    out.push_back(gfg)
+    for k in values.keys():
+        d = values.atVector(k).size if chr(gtsam.Symbol(k).chr()) == "f" else 3
+        out.push_back(gtsam.JacobianFactor(k, np.sqrt(lam) * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)))
+    return out
+
+
+@pytest.mark.parametrize("with_rot,robust", [(True, "none"), (True, "huber"), (False, "none"), (True, "cauchy")])
+def test_line_reprojection_set_with_focal_equals_its_factors(with_rot, robust):
+    """With the focal as a variable, the set's split linearisation (3-key JacobianFactors, (variable, focal) cross
+    HessianFactors, one focal HessianFactor) is the factors' (4 keys each): same cost, same information matrix and
+    vector, same linear error at a random step and the same damped Gauss-Newton step on every key."""
+    rng = np.random.default_rng(3)
+    v, F, K, lk, ck, rk, ep, dirs, Rs = _shared_frames_problem(rng)
+    if not with_rot:
+        for k in rk:
+            if v.exists(k):
+                v.erase(k)
+    rep = factors.LineReprojectionSet(lk, ck, ep, dirs, K, 0.7, rotation_keys=rk if with_rot else None,
+                                      R_wc_fixed=None if with_rot else Rs, robust=robust, k=2.0, focal_key=F)
+    fs = rep.factors(8)
+    assert all(F in f.keys() for f in fs)  # the set's focal is its factors' by default
+    g = gtsam.NonlinearFactorGraph()
+    for f in fs:
+        g.add(f)
+    assert rep.error(v) == pytest.approx(g.error(v), rel=1e-12)
+    assert rep.error(v) > 1.0
+    ref, mine = g.linearize(v), rep.linearize(v)
+    n_vars = 5 + 4 + (4 if with_rot else 0)
+    assert mine.size() == len(rep) + n_vars + 1  # per observation, per variable, the focal
+    keys = sorted(set(ref.keys()))
+    assert sorted(set(mine.keys())) == keys
+    order = gtsam.Ordering()
+    for k in keys:
+        order.push_back(k)
+    for a, b in zip(mine.hessian(order), ref.hessian(order)):  # (A^T A, A^T b)
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-10 * np.abs(b).max())
+    step, zero = gtsam.VectorValues(), gtsam.VectorValues()
+    for k in keys:
+        step.insert(k, rng.normal(size=1 if k == F else 3) * (1.0 if k == F else 0.01))
+        zero.insert(k, np.zeros(1 if k == F else 3))
+    assert mine.error(step) == pytest.approx(ref.error(step), rel=1e-10)
+    assert mine.error(zero) == pytest.approx(ref.error(zero), rel=1e-10)
+    assert abs(ref.error(step) - ref.error(zero)) > 1e-2 * ref.error(step)  # the step matters
+    d_ref, d_mine = _damped(ref, v).optimize(), _damped(mine, v).optimize()
+    assert abs(d_ref.at(F)[0]) > 1e-3  # the focal moves
+    for k in keys:
+        np.testing.assert_allclose(d_mine.at(k), d_ref.at(k), rtol=1e-7, atol=1e-9 * np.abs(d_ref.at(k)).max(),
+                                   err_msg=gtsam.DefaultKeyFormatter(k))
+
+
+@pytest.mark.parametrize("robust", ["none", "huber", "geman_mcclure"])
+def test_line_reprojection_set_with_focal_error_equals_its_factors(robust):
+    """With the focal as a variable, the set's cost and residuals read fx from the values: the factors' at every
+    focal (and not the base K's)."""
+    v, F, K, lk, ck, rk, ep, dirs, Rs = _shared_frames_problem(np.random.default_rng(4))
+    rep = factors.LineReprojectionSet(lk, ck, ep, dirs, K, 0.7, rotation_keys=rk, robust=robust, k=2.0, focal_key=F)
+    fixed_k = factors.LineReprojectionSet(lk, ck, ep, dirs, K, 0.7, rotation_keys=rk, robust=robust, k=2.0)
+    fs = rep.factors(8)
+    g = gtsam.NonlinearFactorGraph()
+    for f in fs:
+        g.add(f)
+    for fx in (0.97, 1.0, 1.02, 1.1):
+        v.update(F, np.array([K[0, 0] * fx]))
+        assert rep.error(v) == pytest.approx(g.error(v), rel=1e-12)
+        np.testing.assert_allclose(rep.residuals(v), np.concatenate([f.unwhitenedError(v).reshape(-1, 2) for f in fs]),
+                                   rtol=1e-12, atol=1e-12)
+        if fx != 1.0:
+            assert abs(rep.error(v) - fixed_k.error(v)) > 1e-3 * rep.error(v)

@@ -75,9 +75,9 @@ Solver: our own Levenberg-Marquardt loop over ``graph.linearize`` /
 (``notes/gtsam-python-performance.md``: GTSAM's optimizers are slow with many
 Python factors). The line reprojection terms, most of the cost, are linearised by one vectorised
 call (:class:`factors.LineReprojectionSet`: the same residuals and Jacobians as the factors, one
-``JacobianFactor`` per observation) instead of one Python callback per factor; the factors
-themselves remain where a graph must hold them (phase 3 with the focal length free, the focal's
-marginal). Measured (``tools/bench_ba.py --frames 300 --clutter 60 --fragment 6``, 2,287-2,774
+``JacobianFactor`` per observation; with the focal length free in phase 3 its column as cross-term
+``HessianFactor`` s per variable) instead of one Python callback per factor; the factors themselves
+remain where a graph must hold them (the focal's marginal). Measured (``tools/bench_ba.py --frames 300 --clutter 60 --fragment 6``, 2,287-2,774
 tracks): 23.1/22.5/18.5 s -> 10.3/11.4/9.8 s for living/bedroom/office, results equal to 1e-5.
 After the last phase relations whose whitened residual
 exceeds ``reject_sigma`` are dropped and the last phase is solved again

@@ -39,9 +39,10 @@ def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase:
     With ``batched`` the line reprojection terms come as a
     :class:`factors.LineReprojectionSet` in ``batches`` (for
     :func:`levenberg_marquardt`, which linearises them in one vectorised call)
-    instead of as CustomFactors in the graph, unless the focal length is a
-    variable; ``counts["reprojection"]`` is the number of CustomFactors either
-    way.
+    instead of as CustomFactors in the graph, also when the focal length is a
+    variable (phase 3; the set then linearises its column as cross-term
+    HessianFactors); ``counts["reprojection"]`` is the number of CustomFactors
+    the terms make without ``batched``, either way.
     """
     graph = gtsam.NonlinearFactorGraph()
     counts = {"reprojection": 0, "colinearity": 0, "orthogonal": 0, "parallel": 0, "junction": 0, "floor": 0,
@@ -56,17 +57,18 @@ def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase:
     rep_robust = config.reprojection_robust if rep_k > 0 else "none"
     if config.reprojection and len(prob.obs_seg):
         fr = prob.obs_frame
+        with_focal = phase >= 3 and gauge.get("focal_free", True)
         rep = factors.LineReprojectionSet(
             [line_key(t) for t in prob.obs_track], [center_key(i) for i in fr], ep[prob.obs_seg],
             prob.directions[prob.obs_track], K, config.reprojection_sigma_px,
             rotation_keys=[rotation_key(i) for i in fr] if phase >= 2 else None,
-            R_wc_fixed=R_fixed[fr] if phase < 2 else None, robust=rep_robust, k=rep_k)
-        with_focal = phase >= 3 and gauge.get("focal_free", True)
-        if with_focal or not batched:
-            for f in rep.factors(CHUNK_OBS, FOCAL_KEY if with_focal else None):
-                graph.add(f)
-        else:
+            R_wc_fixed=R_fixed[fr] if phase < 2 else None, robust=rep_robust, k=rep_k,
+            focal_key=FOCAL_KEY if with_focal else None)
+        if batched:
             batches.append(rep)
+        else:
+            for f in rep.factors(CHUNK_OBS):  # on the focal too when the set has it
+                graph.add(f)
         counts["reprojection"] = len(rep.runs(CHUNK_OBS))
     if config.colinearity:
         for t in prob.lines:
