@@ -61,6 +61,8 @@ def _add_config_flags(p: argparse.ArgumentParser) -> None:
                    help="how the capture was spun: hand-held (the stand point wanders), steady (the stand point "
                         "stays put: frames between two fixed ones are placed on the circle) or auto (default: "
                         "hand-held, then steady where the camera centres lie on one circle)")
+    g.add_argument("--strict", action="store_true", default=None,
+                   help="output only the frames the lines fix (no frame placed by the spin's motion model)")
     g.add_argument("--incremental", type=int, default=None, metavar="N",
                    help="solve incrementally, adding N frames per batch")
     g.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
@@ -147,6 +149,7 @@ def config_from_args(args: argparse.Namespace, base: Config | None = None) -> Co
     put("linear", "camera_height_m", getattr(args, "camera_height", None))
     put("graph", "incremental_batch", getattr(args, "incremental", None))
     put("focal", "estimate", getattr(args, "estimate_focal", None))
+    put("graph", "motion_model", False if getattr(args, "strict", None) else None)
     for item in getattr(args, "set", []) or []:
         if "=" not in item or "." not in item.split("=", 1)[0]:
             raise InputError(f"--set {item!r}: expected SECTION.FIELD=VALUE")

@@ -330,6 +330,12 @@ class GraphConfig:
     # solve again as a steady spin and keep it if its centres pass steady_max_rms_arm (False: the style as set); see
     # docs/decisions.md#auto-spin-style
     steady_auto: bool = True
+    # motion model (our addition; graph.place_by_motion_model): frames the lines leave without a pose are placed by
+    # the spin model and their own observations of the adjusted lines, kept where their centre's largest std is at
+    # most motion_max_sigma_rel of the spin's diameter (False: line-fixed frames only, panosfm run --strict); see
+    # docs/decisions.md#motion-model-placement
+    motion_model: bool = True
+    motion_max_sigma_rel: float = 0.025
     # metric scale: the floor moves down to the deepest horizontal line seen in at least this many frames (0: off);
     # see docs/decisions.md#floor-below-lines
     floor_below_lines_min_obs: int = 3

@@ -63,8 +63,11 @@ class RunResult:
         lines = [f"panosfm: wrote {self.out_dir}"]
         fr = s.get("frames", {})
         if fr:
+            by = fr.get("by_source") or {}
+            how = (f": {by.get('lines', 0)} fixed by lines, {by['motion model']} placed by the motion model"
+                   if by.get("motion model") else "")
             lines.append(f"  frames      {fr.get('registered', 0)}/{fr.get('total', 0)} registered "
-                         f"({100.0 * fr.get('registered_ratio', 0.0):.1f} %)")
+                         f"({100.0 * fr.get('registered_ratio', 0.0):.1f} %){how}")
             for why, count in sorted(fr.get("unregistered_reasons", {}).items(), key=lambda kv: -kv[1]):
                 lines.append(f"              {count} not: {why}")
         if "segments" in s:
@@ -326,7 +329,7 @@ def _linear(capture: Capture, pre: Preprocessed, tracks: Tracks, relations: Rela
 
 def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
                    on_batch: Callable[[int, Solution], None] | None) -> Solution:
-    from .graph import bundle_adjust, bundle_adjust_incremental, steady_or_hand_held
+    from .graph import bundle_adjust, bundle_adjust_incremental, place_by_motion_model, steady_or_hand_held
 
     if not result.linear.registered.any():  # nothing to adjust: the result says so (0 frames registered)
         log.warning("the linear solve registered no frame: bundle adjustment skipped")
@@ -356,7 +359,8 @@ def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
     # the steady linear solve is not a stage of its own: its residuals ride in the result (_linear_residuals)
     sol, _ = steady_or_hand_held(pre, result.tracks, result.relations, result.linear.camera, config.linear,
                                  config.graph, sol)
-    return sol
+    # the frames the lines leave without a pose: placed by the spin's motion model where its std is small enough
+    return place_by_motion_model(pre, result.tracks, sol, config.graph)
 
 
 # --- outputs ----------------------------------------------------------------------------------------
@@ -376,7 +380,17 @@ def unregistered_why(result: RunResult, n_frames: int) -> list[str]:
     sol = result.solution
     if sol is not None and result.linear is not None:
         codes = np.where((codes == 0) & ~sol.registered, REASON_BUNDLE_ADJUST, codes)  # 0: the linear solve's
-    return [UNREGISTERED_REASONS[c] for c in codes]
+    why = [UNREGISTERED_REASONS[c] for c in codes]
+    if sol is None:
+        return why
+    sigma = sol.residuals.get("frame_sigma_rel") or [None] * n_frames
+    bound = (sol.residuals.get("motion_model") or {}).get("max_sigma_rel")
+    for i in range(n_frames):
+        if sol.registered[i]:
+            why[i] = UNREGISTERED_REASONS[0]
+        elif sigma[i] is not None and bound is not None:
+            why[i] = f"{why[i]}; the motion model's std is over {100 * bound:.1f} % of the spin's diameter"
+    return why
 
 
 def _linear_residuals(result: RunResult) -> dict | None:
@@ -411,7 +425,10 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
                    # why each unregistered frame is (aligned with "unregistered"), and how many per reason
                    "unregistered_why": [why[i] for i in np.flatnonzero(~sol.registered)] if sol is not None else [],
                    "unregistered_reasons": dict(Counter(why[i] for i in np.flatnonzero(~sol.registered)))
-                   if sol is not None else {}},
+                   if sol is not None else {},
+                   # how each frame's position was obtained ("lines", "motion model", null: none) and, for frames the
+                   # motion model placed or tried, its centre's largest std over the spin's diameter
+                   **_frame_sources(sol, n)},
         "segments": {"total": segments.n,
                      "manhattan": int(np.sum(pre.labels >= 0)) if pre is not None else 0},
         "tracks": result.tracks.n if result.tracks is not None else 0,
@@ -429,7 +446,8 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
         "zero_baseline": (result.linear.residuals.get("zero_baseline") if result.linear is not None else None),
         "spin_style": (sol.residuals.get("spin_style") if sol is not None and sol is not result.linear else None),
         "residuals": {"linear": linear_res,
-                      "bundle_adjust": ({k: v for k, v in sol.residuals.items() if k != "linear_steady"}
+                      "bundle_adjust": ({k: v for k, v in sol.residuals.items()
+                                         if k not in ("linear_steady", "frame_source", "frame_sigma_rel")}
                                         if sol is not None and sol is not result.linear else None)},
         "seconds": {k: round(v, 3) for k, v in timings.items()},
         "resumed_stages": resumed,
@@ -443,6 +461,16 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
                                                 for b in result.batches]
     summary["seconds"]["total"] = round(time.perf_counter() - t_start, 3)
     return summary
+
+
+def _frame_sources(sol: Solution | None, n: int) -> dict[str, Any]:
+    """Returns summary.json's per-frame sources and motion-model stds, and the count per source."""
+    if sol is None:
+        return {"by_source": {}, "source": [None] * n, "sigma_rel": [None] * n}
+    src = sol.residuals.get("frame_source") or ["lines" if r else None for r in sol.registered]
+    sig = sol.residuals.get("frame_sigma_rel") or [None] * n
+    return {"by_source": dict(Counter(s for s in src if s is not None)), "source": list(src),
+            "sigma_rel": [None if v is None else round(float(v), 5) for v in sig]}
 
 
 def _focal_summary(capture: Capture, result: RunResult, sol: Solution | None) -> dict[str, Any]:

@@ -10,7 +10,8 @@ Entities (world frame: right-handed, metres, +z up):
   ``world/camera/image/relations``LineStrips2D: this frame's relations, midpoint to midpoint
   ``world/camera/image/floor``    Points2D: midpoints of segments on the floor (floor relations)
   ``world/lines``                 LineStrips3D: the 3D lines whose tracks were seen so far
-  ``world/cameras``               Points3D: registered camera centres so far
+  ``world/cameras``               Points3D: registered camera centres so far (green: fixed by lines, orange:
+                                  placed by the motion model)
   ``status``                      TextLog: "registered", or why the frame is not (WARN)
 ``batch`` timeline (incremental solves)
   ``batch/lines``, ``batch/cameras``
@@ -59,6 +60,15 @@ AXIS_RGB = np.array([[230, 50, 50], [50, 200, 50], [60, 110, 240], [150, 150, 15
 # RGB colours per relation kind: orthogonal, parallel, junction, floor.
 RELATION_RGB = np.array([[255, 0, 255], [0, 230, 230], [255, 220, 0], [255, 140, 0]], dtype=np.uint8)
 CAMERA_RGB = (40, 200, 40)
+MOTION_MODEL_RGB = (240, 150, 30)  # frames placed by the spin's motion model (graph.place_by_motion_model)
+
+
+def camera_colors(solution: Solution) -> np.ndarray:
+    """Returns (F, 3) uint8 RGB per frame: green where the lines fix the frame, orange where the motion model placed it."""
+    src = (solution.residuals or {}).get("frame_source") or [None] * len(solution.registered)
+    out = np.tile(np.array(CAMERA_RGB, np.uint8), (len(solution.registered), 1))
+    out[[s == "motion model" for s in src]] = MOTION_MODEL_RGB
+    return out
 MODEL_UPDATES = 60  # the growing 3D model is logged at most this many times on the frame timeline
 
 
@@ -145,11 +155,11 @@ def _log_final(rec: Any, solution: Solution, line_colors: np.ndarray | None) -> 
     lines = solution.lines
     valid = valid_line_mask(lines)
     ends = lines.endpoints[valid]
-    cams = solution.centers[np.asarray(solution.registered, bool)]
-    cams = cams[np.all(np.isfinite(cams), axis=1)]
+    show = np.asarray(solution.registered, bool) & np.all(np.isfinite(solution.centers), axis=1)
+    cams, cam_rgb = solution.centers[show], camera_colors(solution)[show]
     for view in ("final/quarter", "final/height"):
         rec.log(view, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        rec.log(f"{view}/cameras", rr.Points3D(cams, colors=CAMERA_RGB, radii=rr.Radius.ui_points(3.0)), static=True)
+        rec.log(f"{view}/cameras", rr.Points3D(cams, colors=cam_rgb, radii=rr.Radius.ui_points(3.0)), static=True)
     if line_colors is not None:
         rgb = np.asarray(line_colors, dtype=np.uint8)[valid][:, ::-1]
     else:
@@ -173,7 +183,7 @@ def _log_final(rec: Any, solution: Solution, line_colors: np.ndarray | None) -> 
     rec.log("final/topdown/vertical", rr.Points2D((0.5 * (v[:, 0:2] + v[:, 3:5])).astype(np.float32) * flip,
                                                   colors=_axis_rgb(axis[~horiz]), radii=rr.Radius.ui_points(3.0)),
             static=True)
-    rec.log("final/topdown/cameras", rr.Points2D(cams[:, :2].astype(np.float32) * flip, colors=CAMERA_RGB,
+    rec.log("final/topdown/cameras", rr.Points2D(cams[:, :2].astype(np.float32) * flip, colors=cam_rgb,
                                                  radii=rr.Radius.ui_points(3.0), draw_order=10.0), static=True)
 
 
@@ -293,6 +303,7 @@ def _log_frames(rec: Any, capture: Any, pre: Preprocessed, tracks: Tracks | None
         known = reg.copy()
         centers = solution.centers
         fallback_c = np.nanmean(centers[reg], axis=0) if reg.any() else np.zeros(3)
+        cam_rgb = camera_colors(solution)
     every = max(1, int(np.ceil(F / max(model_updates, 1))))
     last_count = -1
     seg_in_frame = np.full(max(T, 1), -1, dtype=np.int64)
@@ -338,7 +349,7 @@ def _log_frames(rec: Any, capture: Any, pre: Preprocessed, tracks: Tracks | None
                 rec.log("world/lines", rr.LineStrips3D(_strips3d(line_ends[placed]), colors=line_rgb[placed],
                                                        radii=rr.Radius.ui_points(1.5)))
                 last_count = count
-            rec.log("world/cameras", rr.Points3D(centers[: i + 1][reg[: i + 1]], colors=CAMERA_RGB,
+            rec.log("world/cameras", rr.Points3D(centers[: i + 1][reg[: i + 1]], colors=cam_rgb[: i + 1][reg[: i + 1]],
                                                  radii=rr.Radius.ui_points(2.5)))
 
 

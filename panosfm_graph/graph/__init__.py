@@ -94,13 +94,16 @@ Layout (one job per module; the package re-exports the names other modules use):
 * :mod:`.spin`          the spin model: circle fit, arm length, the steady and arm checks;
 * :mod:`.solve`         :func:`bundle_adjust` (the phases, rejection rounds, solved again at scale) and
   :func:`bundle_adjust_incremental`;
-* :mod:`.style`         :func:`steady_or_hand_held`, the spin style chosen after the hand-held solve.
+* :mod:`.style`         :func:`steady_or_hand_held`, the spin style chosen after the hand-held solve;
+* :mod:`.motion_model`  :func:`place_by_motion_model`, the frames the lines leave without a pose placed by the spin
+  model, with their std (issue #40).
 """
 from __future__ import annotations
 
 from .determinacy import determinacy, focal_sigma
 from .factor_graph import CHUNK_OBS, FOCAL_PRIOR_FRAC, GAUGE_SIGMA
 from .lm import levenberg_marquardt
+from .motion_model import place_by_motion_model
 from .problem import (ARM_KEY, DRIFT_KEY, FLOOR_KEY, FOCAL_KEY, center_key, floor_held_scale, line_key, relation_residuals,
                       relation_sigmas, rotation_key, stand_key)
 from .readout import line_extents
@@ -113,7 +116,7 @@ from .style import steady_or_hand_held
 __all__ = [
     "ARM_KEY", "CHUNK_OBS", "DRIFT_KEY", "FLOOR_KEY", "FOCAL_KEY", "FOCAL_PRIOR_FRAC", "GAUGE_SIGMA", "MAX_REJECT_ROUNDS",
     "bundle_adjust", "bundle_adjust_incremental", "center_key", "determinacy", "fit_spin", "floor_held_scale",
-    "focal_sigma", "levenberg_marquardt", "line_extents", "line_key", "relation_residuals", "relation_sigmas",
+    "focal_sigma", "levenberg_marquardt", "line_extents", "line_key", "place_by_motion_model", "relation_residuals", "relation_sigmas",
     "rotation_bundle_adjust", "rotation_key", "spin_arm_length", "spin_fit", "stand_key", "steady_or_hand_held",
     "_scaled",  # tests/test_graph.py
 ]
