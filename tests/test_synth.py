@@ -236,7 +236,7 @@ def test_presets_differ_and_leave_room_to_spin():
     K = intrinsics(SIZE)
     first = []
     for s in scenes:
-        assert s.n_boxes >= 5
+        assert s.n_boxes >= (4 if s.name == "bare" else 5)  # the bare room: one door (leaf and trim)
         assert len(s.edges()[0]) == 12 * (s.n_boxes + 1) and s.faces().n == 6 * (s.n_boxes + 1)
         R, c, _ = spin_trajectory(s, 60, seed=0)
         assert s.distance_to_surfaces(c).min() > 0.5  # cameras are well clear of every surface
@@ -330,3 +330,13 @@ def test_exposure_blurs_by_the_angular_speed(tmp_path):
     gx = lambda p: np.abs(cv2.Sobel(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE), cv2.CV_32F, 1, 0)).mean()  # noqa: E731
     assert gx(blurred / "frames" / "000001.png") < 0.7 * gx(sharp / "frames" / "000001.png")
     assert json.loads((blurred / "ground_truth" / "synth.json").read_text())["exposure_s"] == 0.1
+
+
+def test_a_bare_room_seen_level_shows_only_vertical_edges_and_the_run_says_so(tmp_path, capsys):
+    """The bare room (issue #40): walls, one door; a level 65-degree view sees no floor or ceiling edge."""
+    from panosfm_graph.cli import main
+
+    cap = synthesize(tmp_path / "bare", "bare", 40, (480, 270), seed=0, workers=1, gt_maps=False)
+    assert main(["run", str(cap), str(tmp_path / "out"), "--no-rerun"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "only vertical edges" in err

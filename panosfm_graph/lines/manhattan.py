@@ -206,8 +206,10 @@ def check_enough_manhattan(labels: np.ndarray, config: Config | ManhattanConfig)
     cfg = _manhattan_config(config)
     counts = np.bincount(labels[labels >= 0].astype(np.int64), minlength=3)
     if counts.sum() < cfg.min_segments or np.count_nonzero(counts >= 3) < 2:
+        why = ("only vertical edges: the floor's and ceiling's edges and every horizontal edge are out of view (a bare "
+               "room; tilt the phone to see where walls meet the floor)" if counts[2] >= cfg.min_segments else
+               "the frames may show a textureless close-up or a non-Manhattan scene")
         raise TooFewLinesError(
             f"too few Manhattan line segments ({counts[0]} x, {counts[1]} y, {counts[2]} vertical; "
-            f"at least {cfg.min_segments} on two or more axes needed): the frames may show a "
-            "textureless close-up or a non-Manhattan scene"
+            f"at least {cfg.min_segments} on two or more axes needed): {why}"
         )

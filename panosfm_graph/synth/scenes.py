@@ -42,7 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-SCENES: tuple[str, ...] = ("living", "bedroom", "office", "random")
+SCENES: tuple[str, ...] = ("living", "bedroom", "office", "random", "bare", "plain", "hall", "narrow")
 
 # Box kinds (informational; all are solid axis-aligned boxes).
 FURNITURE, DOOR, WINDOW, POSTER = "furniture", "door", "window", "poster"
@@ -405,6 +405,59 @@ def _office(seed: int) -> Scene:
     return b.build("office", seed, 50.0, shell, (1.6, 1.9))
 
 
+def _bare(seed: int) -> Scene:
+    """A bare painted room: four walls, floor, ceiling and one door (issue #40's hardest kind)."""
+    b = _Builder((4.2, 3.6, 2.6))
+    b.door("door", "+x", 1.2, (0.90, 0.89, 0.86), (0.96, 0.96, 0.95))
+    shell = [(0.86, 0.85, 0.80), (0.84, 0.84, 0.80), (0.85, 0.84, 0.79), (0.83, 0.83, 0.79), (0.62, 0.55, 0.46),
+             (0.95, 0.95, 0.93)]
+    return b.build("bare", seed, 10.0, shell, (2.5, 1.5))
+
+
+def _plain(seed: int) -> Scene:
+    """A plain-walled playroom: a door, a window and a few small objects on the floor, nothing on the walls."""
+    b = _Builder((4.6, 3.9, 2.6))
+    b.door("door", "-x", 2.4, (0.88, 0.86, 0.82), (0.96, 0.96, 0.95))
+    b.window("window", "+y", 1.4, 0.9, 1.2, 1.2, (0.62, 0.74, 0.86), (0.96, 0.96, 0.96))
+    b.floor_box("toy_box", 3.6, 0.3, 0.6, 0.4, 0.4, (0.85, 0.30, 0.25))
+    b.floor_box("blocks", 1.0, 0.8, 0.3, 0.3, 0.3, (0.25, 0.45, 0.80))
+    b.floor_box("stool", 0.5, 3.0, 0.35, 0.35, 0.45, (0.95, 0.80, 0.20))
+    b.against("low_shelf", "+x", 2.2, 0.8, 0.3, 0.6, (0.75, 0.60, 0.40))
+    shell = [(0.84, 0.82, 0.76), (0.80, 0.84, 0.82), (0.85, 0.80, 0.74), (0.80, 0.80, 0.84), (0.58, 0.50, 0.40),
+             (0.95, 0.95, 0.93)]
+    return b.build("plain", seed, -15.0, shell, (2.9, 2.3))
+
+
+def _hall(seed: int) -> Scene:
+    """A large hall, 9 x 7 x 4 m, the stand point well off its centre (lines 3-7 m away)."""
+    b = _Builder((9.0, 7.0, 4.0))
+    b.door("door_a", "-x", 1.5, (0.55, 0.40, 0.28), (0.92, 0.92, 0.90), width=1.6, height=2.4)
+    b.door("door_b", "+y", 6.5, (0.55, 0.40, 0.28), (0.92, 0.92, 0.90))
+    for k, u in enumerate((1.2, 3.6, 6.0)):
+        b.window(f"window_{k}", "-y", u, 1.2, 1.6, 2.0, (0.62, 0.74, 0.86), (0.96, 0.96, 0.96))
+    b.against("stage", "+x", 1.5, 4.0, 1.5, 0.5, (0.45, 0.32, 0.22))
+    b.against("piano", "+y", 1.0, 1.5, 0.6, 1.1, (0.08, 0.08, 0.09))
+    b.floor_box("table_a", 3.0, 4.5, 1.8, 0.8, 0.75, (0.70, 0.55, 0.35))
+    b.floor_box("table_b", 5.4, 4.5, 1.8, 0.8, 0.75, (0.70, 0.55, 0.35))
+    b.poster("banner", "-x", 4.2, 1.8, 1.8, 1.0, (0.80, 0.25, 0.25))
+    shell = [(0.86, 0.82, 0.72), (0.78, 0.80, 0.78), (0.84, 0.78, 0.70), (0.80, 0.78, 0.82), (0.50, 0.36, 0.24),
+             (0.95, 0.95, 0.93)]
+    return b.build("hall", seed, 30.0, shell, (6.4, 2.2))
+
+
+def _narrow(seed: int) -> Scene:
+    """A long narrow room (a corridor-like study), 7.0 x 2.4 x 2.6 m: the near walls 0.8-1.6 m away."""
+    b = _Builder((7.0, 2.4, 2.6))
+    b.door("door", "-x", 0.7, (0.90, 0.88, 0.84), (0.96, 0.96, 0.95))
+    b.window("window", "+x", 0.6, 0.9, 1.2, 1.2, (0.62, 0.74, 0.86), (0.96, 0.96, 0.96))
+    b.against("bookshelf", "+y", 1.0, 2.4, 0.25, 2.0, (0.62, 0.45, 0.28))
+    b.against("desk", "-y", 4.2, 1.4, 0.6, 0.75, (0.80, 0.76, 0.68))
+    b.poster("poster", "-y", 1.5, 1.3, 0.8, 0.6, (0.30, 0.55, 0.70))
+    shell = [(0.82, 0.80, 0.74), (0.78, 0.80, 0.76), (0.84, 0.80, 0.72), (0.80, 0.78, 0.80), (0.55, 0.45, 0.35),
+             (0.95, 0.95, 0.93)]
+    return b.build("narrow", seed, -60.0, shell, (3.0, 1.15))
+
+
 def _random_color(rng: np.random.Generator, lum: tuple[float, float]) -> np.ndarray:
     c = rng.uniform(0.15, 0.95, 3)
     y = 0.299 * c[0] + 0.587 * c[1] + 0.114 * c[2]
@@ -547,7 +600,8 @@ def _pick_stand_point(b: _Builder, rng: np.random.Generator, clearance_m: float 
     return float(p[i, 0]), float(p[i, 1])
 
 
-_PRESETS = {"living": _living, "bedroom": _bedroom, "office": _office, "random": _random_room}
+_PRESETS = {"living": _living, "bedroom": _bedroom, "office": _office, "random": _random_room, "bare": _bare,
+            "plain": _plain, "hall": _hall, "narrow": _narrow}
 
 
 def make_scene(name: str, seed: int = 0) -> Scene:
