@@ -428,7 +428,8 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
                    if sol is not None else {},
                    # how each frame's position was obtained ("lines", "motion model", null: none) and, for frames the
                    # motion model placed or tried, its centre's largest std over the spin's diameter
-                   **_frame_sources(sol, n)},
+                   **_frame_sources(sol, n, bool(((result.linear.residuals if result.linear is not None else {})
+                                                   .get("zero_baseline") or {}).get("detected")))},
         "segments": {"total": segments.n,
                      "manhattan": int(np.sum(pre.labels >= 0)) if pre is not None else 0},
         "tracks": result.tracks.n if result.tracks is not None else 0,
@@ -463,11 +464,13 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
     return summary
 
 
-def _frame_sources(sol: Solution | None, n: int) -> dict[str, Any]:
-    """Returns summary.json's per-frame sources and motion-model stds, and the count per source."""
+def _frame_sources(sol: Solution | None, n: int, zero_baseline: bool = False) -> dict[str, Any]:
+    """Returns summary.json's per-frame sources and motion-model stds, and the count per source ("shared centre":
+    a zero-baseline spin's frames, every one at the one centre)."""
     if sol is None:
         return {"by_source": {}, "source": [None] * n, "sigma_rel": [None] * n}
-    src = sol.residuals.get("frame_source") or ["lines" if r else None for r in sol.registered]
+    fixed = "shared centre" if zero_baseline else "lines"
+    src = sol.residuals.get("frame_source") or [fixed if r else None for r in sol.registered]
     sig = sol.residuals.get("frame_sigma_rel") or [None] * n
     return {"by_source": dict(Counter(s for s in src if s is not None)), "source": list(src),
             "sigma_rel": [None if v is None else round(float(v), 5) for v in sig]}

@@ -44,6 +44,7 @@ def test_tripod_spin_is_zero_baseline_with_every_frame_at_one_centre(captures, t
     zb = res.summary["zero_baseline"]
     assert zb["detected"] and zb["tracks"] >= 20 and zb["parallax_px"] < 1.0
     assert res.summary["frames"]["registered"] == FRAMES
+    assert res.summary["frames"]["by_source"] == {"shared centre": FRAMES}
     assert "ZERO" in res.report()
     assert np.ptp(res.solution.centers, axis=0).max() == 0.0  # one centre shared by every frame
     images = (tmp_path / "out" / "sparse" / "images.txt").read_text().split("\n")
