@@ -64,8 +64,10 @@ class RunResult:
         fr = s.get("frames", {})
         if fr:
             by = fr.get("by_source") or {}
-            how = (f": {by.get('lines', 0)} fixed by lines, {by['motion model']} placed by the motion model"
-                   if by.get("motion model") else "")
+            names = {"steady circle": "on the steady spin's circle", "motion model": "placed by the motion model"}
+            how = (f": {by.get('lines', 0)} fixed by lines, " + ", ".join(f"{by[k]} {v}" for k, v in names.items()
+                                                                           if by.get(k))
+                   if any(by.get(k) for k in names) else "")
             lines.append(f"  frames      {fr.get('registered', 0)}/{fr.get('total', 0)} registered "
                          f"({100.0 * fr.get('registered_ratio', 0.0):.1f} %){how}")
             for why, count in sorted(fr.get("unregistered_reasons", {}).items(), key=lambda kv: -kv[1]):

@@ -603,6 +603,10 @@ def test_steady_spin_places_the_frames_a_blank_wall_leaves_free():
         np.testing.assert_array_equal(auto.registered, sols[want].registered)
         np.testing.assert_allclose(auto.centers[auto.registered], sols[want].centers[auto.registered], atol=1e-9)
         assert (auto_linear is None) == (sway > 0.0)
+        if sway == 0.0:  # the frames only the steady style registers are said to be placed on its circle
+            src = np.array(auto.residuals["frame_source"], dtype=object)
+            np.testing.assert_array_equal(src == "lines", sols["hand-held"].registered)
+            np.testing.assert_array_equal(src == "steady circle", auto.registered & ~sols["hand-held"].registered)
         if sway == 0.0:
             assert auto.residuals["linear_steady"]["registered"] > sols["hand-held"].registered.sum()
             np.testing.assert_array_equal(auto_linear.registered, lins["steady"].registered)

@@ -48,13 +48,16 @@ MIN_FIXED = 6  # fewer line-fixed frames: no motion model
 def place_by_motion_model(pre: Preprocessed, tracks: Tracks, sol: Solution, config: GraphConfig) -> Solution:
     """Returns ``sol`` with the frames the motion model places within its sigma bound registered (module docstring).
 
-    ``residuals["frame_source"]`` (per frame: "lines", "motion model" or None),
+    ``residuals["frame_source"]`` (per frame: "lines", "steady circle" where the steady style placed it,
+    "motion model" or None),
     ``residuals["frame_sigma_rel"]`` (per frame: the placed centre's largest std over the spin's diameter;
     None for line-fixed and unplaced frames) and ``residuals["motion_model"]`` (counts, bound, seconds).
     """
     F = len(sol.registered)
-    source = np.where(sol.registered, "lines", None).tolist()
     res = dict(sol.residuals)
+    given = res.get("frame_source")  # the steady style's (graph.style): "lines" or "steady circle"
+    source = list(given) if given is not None and len(given) == F else np.where(sol.registered, "lines", None).tolist()
+    source = [s if r else None for s, r in zip(source, sol.registered)]
     res["frame_source"], res["frame_sigma_rel"] = source, [None] * F
     fixed = np.flatnonzero(sol.registered)
     todo = np.flatnonzero(~sol.registered & np.all(np.isfinite(pre.R_wc), axis=(1, 2)))

@@ -57,5 +57,8 @@ def steady_or_hand_held(pre: Preprocessed, tracks: Tracks, relations: Relations,
         res["steady_check"] = check
         return dataclasses.replace(hand_held, residuals=res), None
     out = dict(steady.residuals)
-    out.update(spin_style="steady (auto)", steady_check=check, linear_steady=dict(linear.residuals))
+    out.update(spin_style="steady (auto)", steady_check=check, linear_steady=dict(linear.residuals),
+               # the frames only the steady style registers sit on its circle, not where lines put them
+               frame_source=["lines" if h else ("steady circle" if st else None)
+                             for h, st in zip(reg, steady.registered)])
     return dataclasses.replace(steady, residuals=out), linear
