@@ -160,6 +160,10 @@ class NormalsConfig:
     # ... the winning axis needs this share of the frames that label the pixel (0.8: within noise); see
     # docs/decisions.md#orientation-map-vote-share
     fuse_share: float = 0.6
+    # ... on a slow spin only every k-th of those frames votes, k = round(this / the median step between frames, deg),
+    # so that the work per frame stays that of a 300-frame spin (0: every frame); see
+    # docs/decisions.md#orientation-map-fusion-stride
+    fuse_step_deg: float = 1.25
 
 
 @dataclass(frozen=True)

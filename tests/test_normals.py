@@ -191,3 +191,28 @@ def test_orientation_map_fusion_votes_across_neighbouring_frames():
     single.prepare(None, pre)
     single._orient = {0: maps[0]}
     np.testing.assert_array_equal(single.fused_orientation(None, pre, 0, h, w, 1.0), maps[0])
+
+
+def test_orientation_map_fusion_work_per_frame_does_not_grow_with_spin_speed(monkeypatch):
+    """normals.fuse_step_deg: a 600-frame spin fuses every other neighbour, as many per frame as a 300-frame spin."""
+    from types import SimpleNamespace
+
+    import panosfm_graph.normals.orientation_map as om
+    from panosfm_graph.config import NormalsConfig
+    from panosfm_graph.synth import make_scene, spin_trajectory
+
+    calls = []
+    monkeypatch.setattr(om.cv2, "warpPerspective", lambda img, H, size, **kw: calls.append(1) or img)
+    counts = {}
+    for n in (300, 600):
+        R, _, _ = spin_trajectory(make_scene("living", 0), n, seed=0)
+        src = om.OrientationMapNormals(NormalsConfig())
+        src.prepare(None, None)
+        monkeypatch.setattr(src, "_one_hot", lambda *a: np.zeros((4, 6, 3), np.uint8))
+        capture = SimpleNamespace(camera=SimpleNamespace(K=np.diag([500.0, 500.0, 1.0])))
+        pre = SimpleNamespace(R_wc=R)
+        calls.clear()
+        for f in range(0, n, 10):
+            src.fused_orientation(capture, pre, f, 4, 6, 0.25)
+        counts[n] = len(calls) / len(range(0, n, 10))
+    assert 12 <= counts[300] <= 24 and abs(counts[600] - counts[300]) <= 2, counts

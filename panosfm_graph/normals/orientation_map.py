@@ -125,6 +125,7 @@ class OrientationMapNormals(NormalSource):
         self._rays = None
         self._orient: dict[int, np.ndarray] = {}  # frame -> (h, w) int8 orientation map
         self._onehot: dict[int, np.ndarray] = {}  # frame -> (h, w, 3) uint8 one-hot of it (fusion)
+        self._stride: int | None = None  # every k-th neighbour votes (fuse_step_deg)
 
     def _orientation(self, capture, pre, f, h, w, scale) -> np.ndarray:
         """Returns frame ``f``'s (h, w) int8 orientation map (Manhattan axis of the normal, -1 unknown), cached."""
@@ -145,13 +146,21 @@ class OrientationMapNormals(NormalSource):
         ``fuse_deg`` are warped into frame ``f`` by the rotation homography
         (the camera's few-centimetre translation is below a low-resolution
         pixel at room depths) and vote per pixel; the winning axis needs
-        ``fuse_share`` of the frames that label the pixel.
+        ``fuse_share`` of the frames that label the pixel. On a spin slower
+        than one frame per ``fuse_step_deg`` only every k-th of them votes:
+        the work per frame of a 300-frame spin, linear in the frames.
         """
         deg = self.config.fuse_deg
         if deg <= 0:
             return self._orientation(capture, pre, f, h, w, scale)
         axes = pre.R_wc[:, :, 2]
         near = np.flatnonzero(axes @ axes[f] >= np.cos(np.radians(deg)))
+        if self._stride is None:
+            steps = np.degrees(np.arccos(np.clip(np.sum(axes[1:] * axes[:-1], axis=1), -1.0, 1.0)))
+            med = float(np.median(steps)) if len(steps) else 0.0
+            step = self.config.fuse_step_deg
+            self._stride = max(1, int(round(step / med))) if step > 0 and med > 0 else 1
+        near = near[(near - f) % self._stride == 0]  # a slow spin: every k-th frame, f itself among them
         K_low = np.diag([scale, scale, 1.0]) @ capture.camera.K
         K_inv = np.linalg.inv(K_low)
         votes = np.zeros((h, w, 3), np.int16)  # per pixel: frames voting x, y, z
