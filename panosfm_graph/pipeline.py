@@ -428,8 +428,9 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
                    "unregistered_why": [why[i] for i in np.flatnonzero(~sol.registered)] if sol is not None else [],
                    "unregistered_reasons": dict(Counter(why[i] for i in np.flatnonzero(~sol.registered)))
                    if sol is not None else {},
-                   # how each frame's position was obtained ("lines", "motion model", null: none) and, for frames the
-                   # motion model placed or tried, its centre's largest std over the spin's diameter
+                   # how each frame's position was obtained ("lines", "steady circle", "motion model", "shared
+                   # centre", null: none) and, for frames the motion model placed or tried, its centre's largest std
+                   # over the spin's diameter
                    **_frame_sources(sol, n, bool(((result.linear.residuals if result.linear is not None else {})
                                                    .get("zero_baseline") or {}).get("detected")))},
         "segments": {"total": segments.n,

@@ -31,6 +31,16 @@ def widened_robust_k(config: GraphConfig, k: float, rms_initial_px: float) -> fl
     return float(np.clip(wide, k, max(k, config.reprojection_robust_k_max)))
 
 
+def reprojection_kernel(config: GraphConfig, phase: int, rms_initial_px: float = 0.0) -> tuple[str, float]:
+    """Returns (kernel, threshold in sigmas) of the line reprojection terms in BA ``phase`` (1-3): the phase's
+    ``reprojection_robust_k``, graduated in phase 1 (:func:`widened_robust_k`); "none" where the threshold is 0."""
+    ks = tuple(config.reprojection_robust_k) or (0.0,)
+    k = float(ks[min(phase, len(ks)) - 1])
+    if phase == 1 and k > 0:  # graduated: at first as wide as the initial residuals
+        k = widened_robust_k(config, k, rms_initial_px)
+    return (config.reprojection_robust if k > 0 else "none"), k
+
+
 def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase: int, R_fixed: np.ndarray,
                  K: np.ndarray, rel_mask: np.ndarray, config: GraphConfig, gauge: dict,
                  batched: bool = False) -> tuple[gtsam.NonlinearFactorGraph, dict, list]:
@@ -50,11 +60,7 @@ def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase:
     ep = pre.segments.endpoints.astype(np.float64)
     rel_sigma = _relation_sigma(config)
     batches = []
-    ks = tuple(config.reprojection_robust_k) or (0.0,)
-    rep_k = float(ks[min(phase, len(ks)) - 1])
-    if phase == 1 and rep_k > 0:  # graduated: at first as wide as the initial residuals
-        rep_k = widened_robust_k(config, rep_k, gauge.get("reprojection_rms_initial", 0.0))
-    rep_robust = config.reprojection_robust if rep_k > 0 else "none"
+    rep_robust, rep_k = reprojection_kernel(config, phase, gauge.get("reprojection_rms_initial", 0.0))
     if config.reprojection and len(prob.obs_seg):
         fr = prob.obs_frame
         with_focal = phase >= 3 and gauge.get("focal_free", True)

@@ -9,9 +9,9 @@ builds one GTSAM graph of
 * the line-fixed frames' centres, held where the bundle adjustment put them
   (a tight prior each);
 * the spin model over every frame: stand-point knots a fixed turn apart tied
-  by a random walk, one arm; each line-fixed centre on the circle within
-  ``graph.spin_sigma_m`` (robust), each frame to place within that or the
-  line-fixed frames' RMS distance from the fitted model, the larger;
+  by a random walk, one arm; each centre on the circle within
+  ``graph.spin_sigma_m`` (robust for the line-fixed ones, Gaussian for the
+  frames to place);
 * for each frame to place, its observations of the adjusted 3D lines (held)
   at its refined rotation: a frame whose lines fix its centre along one axis
   keeps that, the motion model supplies the rest;
@@ -36,6 +36,7 @@ import factors
 from ..config import GraphConfig
 from ..data import Preprocessed, Solution, Tracks
 from ..geometry import turned_degrees
+from .factor_graph import reprojection_kernel
 from .problem import ARM_KEY, center_key, line_key, stand_key
 from .spin import fit_spin
 
@@ -79,9 +80,9 @@ def place_by_motion_model(pre: Preprocessed, tracks: Tracks, sol: Solution, conf
 
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     hold = gtsam.noiseModel.Isotropic.Sigma(3, HOLD_SIGMA)
-    fixed_noise = factors.spin_noise(config.spin_sigma_m, config.spin_sigma_m * config.spin_vertical_ratio,
-                                     config.spin_robust, config.robust_k)
-    free_noise = factors.spin_noise(model_sigma, model_sigma * config.spin_vertical_ratio)
+    vertical = model_sigma * config.spin_vertical_ratio
+    fixed_noise = factors.spin_noise(model_sigma, vertical, config.spin_robust, config.robust_k)
+    free_noise = factors.spin_noise(model_sigma, vertical)
     for k in range(n_knots):
         values.insert(stand_key(k), stand[k])
         if k:
@@ -147,8 +148,7 @@ def _add_line_observations(graph, values, pre: Preprocessed, tracks: Tracks, sol
         return 0
     K = sol.camera.K
     dirs = pre.manhattan.directions[np.clip(tracks.axis, 0, 2)]
-    noise = factors.noise_model(2, config.reprojection_sigma_px, config.reprojection_robust,
-                                float(tuple(config.reprojection_robust_k)[-1]) if config.reprojection_robust_k else 0.0)
+    noise = factors.noise_model(2, config.reprojection_sigma_px, *reprojection_kernel(config, 3))  # the BA's last
     for t in np.unique(tr[s]):
         values.insert(line_key(t), sol.lines.taylor[t])
         graph.add(gtsam.PriorFactorPoint3(line_key(t), sol.lines.taylor[t], hold))

@@ -131,8 +131,8 @@ def import_capture(video: str | Path, sensors: str | Path, out: str | Path, fmt:
         report = {
             "video": str(video), "sensors": str(sensors), "sensor_log": raw.source, "frames": int(n),
             "frame_times_from": t_from, "gyro_rate_hz": round(raw.gyro_rate_hz, 2),
-            "time_offset_s": sync.offset_s, "time_offset_sigma_s": sync.offset_sigma_s, "offset_guess_s": guess, "sync_correlation": sync.correlation,
-            "sync_residual_deg": sync.residual_deg, "image_turn_scale": sync.scale,
+            "time_offset_s": sync.offset_s, "time_offset_sigma_s": sync.offset_sigma_s, "offset_guess_s": guess,
+            "sync_correlation": sync.correlation, "sync_residual_deg": sync.residual_deg, "image_turn_scale": sync.scale,
             "camera_from_device": sync.camera_from_device.tolist(), "camera_axes_snapped": sync.axes_snapped,
             "gyro_bias_rad_s": att.gyro_bias.tolist(), "still_s": att.still_s,
             "up_residual_deg": att.up_residual_deg, "focal_px": focal_px, "warnings": warnings,
@@ -157,8 +157,9 @@ def format_import(res: ImportResult) -> str:
     focal = f"{res.focal_px:.1f} px" if res.focal_px is not None else "not given (panosfm run estimates it)"
     lines = [
         f"wrote {res.path}: {res.n_frames} frames, sensors {res.sensors}",
-        f"time offset   sensor clock = video clock {s.offset_s:+.4f} s +- {1e3 * s.offset_sigma_s:.1f} ms (correlation {s.correlation:.3f}, off-axis "
-        f"residual {s.residual_deg:.3f} deg per frame, {s.intervals} frame pairs)",
+        f"time offset   sensor clock = video clock {s.offset_s:+.4f} s +- {1e3 * s.offset_sigma_s:.1f} ms "
+        f"(correlation {s.correlation:.3f}, off-axis residual {s.residual_deg:.3f} deg per frame, {s.intervals} "
+        f"frame pairs)",
         "camera axes   " + ("along the phone's: " if s.axes_snapped else "fitted: ")
         + "; ".join(" ".join(f"{v:+.0f}" if s.axes_snapped else f"{v:+.2f}" for v in row)
                     for row in s.camera_from_device),
