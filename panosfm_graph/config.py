@@ -142,6 +142,9 @@ class TrackingConfig:
     merge_tol_px: float = 2.0  # ... their interpretation-plane angles, fitted linearly over frames, agree within this
     merge_overlap: bool = False  # ... and tracks whose spans overlap (two pieces of one line followed side by side)
     merge_image_px: float = 3.0  # ... and each fit passes this close (px) to the other track's nearest segment (0: off)
+    # ... or, across up to merge_gap_frames at any spin speed, one line through both seen from the spin's circle fits
+    # within this RMS (px; 0: off); see docs/decisions.md#spin-line-fragment-joins
+    merge_spin_px: float = 0.0
     min_longest_frac: float = 0.0  # drop tracks whose longest segment is below this * min(w, h) (texture; 0: off)
 
 

@@ -810,3 +810,34 @@ def test_merge_needs_the_join_to_hold_in_the_image():
         strict = merge_fragments(tracks, segs, K, R, directions, gap_frames=3, tol_px=20.0, image_px=3.0)
         assert loose.n == 1  # the angle test alone joins either
         assert strict.n == (1 if piece == 3 else 2), (piece, strict.track_of)
+
+
+def test_spin_line_rms_fits_one_line_seen_from_a_spin_circle():
+    """fragments.spin_line_rms: the planes through one vertical line seen from cameras on a spin's circle (any arm,
+    any stand point) fit one line (RMS ~0); a piece of a parallel line 15 cm away does not (several px)."""
+    from panosfm_graph.lines.fragments import spin_line_rms
+
+    yaw = np.radians(np.arange(12) * 6.0)  # a 60-frame spin's steps
+    z = np.column_stack([np.cos(yaw), np.sin(yaw), np.zeros_like(yaw)])
+    y = np.tile([0.0, 0.0, -1.0], (len(yaw), 1))
+    R_wc = np.stack([np.cross(y, z), y, z], axis=2)
+    centres = np.array([0.2, -0.1]) + 0.31 * z[:, :2]  # a stand point off the origin, an arm of 0.31 m
+
+    def phi(line_xy: np.ndarray, frames: np.ndarray) -> np.ndarray:
+        r = line_xy - centres[frames]
+        return np.arctan2(r[:, 0], -r[:, 1])  # the plane's normal (-r_y, r_x) in the basis (x, y)
+
+    frames = np.arange(12)
+    one = np.array([1.8, 0.9])
+    other = one + np.array([0.0, 0.15])
+    angles = np.concatenate([phi(one, frames[:5]), phi(one, frames[7:]), phi(other, frames[7:])])
+    fr = np.concatenate([frames[:5], frames[7:], frames[7:]])
+    groups = np.concatenate([np.zeros(5), np.zeros(5), -np.ones(5)]).astype(np.int64)  # group 0: one line
+    groups2 = np.concatenate([np.ones(5), -np.ones(5), np.ones(5)]).astype(np.int64)  # group 1: two lines
+    rms = spin_line_rms(angles, fr, 2, R_wc, np.eye(3), np.maximum(groups, groups2), 2, 500.0)
+    assert rms[0] < 1e-6, rms
+    assert rms[1] > 3.0, rms
+    # fewer than 3 observations: always fitted; parallel planes only (no baseline): infinity
+    assert spin_line_rms(angles[:2], fr[:2], 2, R_wc, np.eye(3), np.zeros(2, np.int64), 1, 500.0)[0] == 0.0
+    same = np.full(4, 0.3)
+    assert np.isinf(spin_line_rms(same, np.zeros(4, np.int64), 2, R_wc, np.eye(3), np.zeros(4, np.int64), 1, 500.0)[0])

@@ -439,9 +439,9 @@ def track_lines(
         return _no_tracks(S)
     tracks = _tracks_of_matches(*matches, segments, labels, cfg.min_track_length, len(pairs) + len(loops))
     gap_frames = merge_gap(R_wc, cfg.merge_gap_frames, cfg.merge_gap_deg)
-    if gap_frames > 0 and directions is not None:
+    if (gap_frames > 0 or cfg.merge_spin_px > 0) and directions is not None:
         tracks = merge_fragments(tracks, segments, K, R_wc, directions, gap_frames, cfg.merge_tol_px,
-                                 cfg.merge_overlap, cfg.merge_image_px)
+                                 cfg.merge_overlap, cfg.merge_image_px, cfg.merge_spin_px, cfg.merge_gap_frames)
     if cfg.min_longest_frac > 0:
         tracks = drop_short_tracks(tracks, segments, cfg.min_longest_frac * min_side)
     return tracks
