@@ -175,7 +175,8 @@ def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config =
     The output directory is replaced atomically when everything is written;
     on an error the previous result stays as it was. ``stop_after`` names a
     stage in :data:`STAGES` to stop after (what exists so far is still
-    exported). ``on_batch(i, solution)`` sees every incremental batch.
+    exported). With ``graph.incremental_batch`` the stages run as frames are read, N at a time
+    (:mod:`.stream`; the stage cache unused); ``on_batch(i, solution)`` sees every batch's estimate.
     ``cache_dir`` (default ``<out>/cache``) may be shared between runs, as
     ablations do.
     """
@@ -196,6 +197,27 @@ def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config =
         warnings = capture_warnings(capture, config.capture)  # InputError when there is no turn
     cache = StageCache(Path(cache_dir) if cache_dir is not None else out_dir / "cache", enabled=resume)
     result = RunResult(out_dir=out_dir, summary={}, capture=capture)
+
+    if config.graph.incremental_batch and stop_after is None:  # streamed: N frames at a time (stream.py)
+        segments = _streamed(capture, config, result, timings, rerun, on_batch)
+    else:
+        segments = _stages(capture, config, cache, result, timings, resumed, stop_after, rerun, on_batch)
+    capture = result.capture
+
+    with stage("export", timings):
+        with atomic_output_dir(out_dir, keep=CACHE_KEEP) as tmp:
+            summary = _summary(capture, segments, result, config, timings, resumed, t_start)
+            solved = (result.solution.residuals or {}) if result.solution is not None else {}
+            summary["warnings"] = warnings + list(solved.get("warnings", []))
+            _export(tmp, capture, segments, result, summary, rerun=rerun, spawn=spawn, views=views)
+    result.summary = summary
+    return result
+
+
+def _stages(capture: Capture, config: Config, cache: StageCache, result: RunResult, timings: dict[str, float],
+            resumed: list[str], stop_after: str | None, rerun: bool,
+            on_batch: Callable[[int, Solution], None] | None) -> Segments:
+    """Runs the stages on all frames at once, each cached (module docstring), into ``result``; returns the segments."""
 
     def done(name: str) -> bool:
         return stop_after == name
@@ -243,15 +265,25 @@ def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config =
             result.solution = _cached(
                 cache, "bundle_adjust", key, Solution,
                 lambda: _bundle_adjust(pre, result, config, on_batch), timings, resumed)
+    return segments
 
-    with stage("export", timings):
-        with atomic_output_dir(out_dir, keep=CACHE_KEEP) as tmp:
-            summary = _summary(capture, segments, result, config, timings, resumed, t_start)
-            solved = (result.solution.residuals or {}) if result.solution is not None else {}
-            summary["warnings"] = warnings + list(solved.get("warnings", []))
-            _export(tmp, capture, segments, result, summary, rerun=rerun, spawn=spawn, views=views)
-    result.summary = summary
-    return result
+
+def _streamed(capture: Capture, config: Config, result: RunResult, timings: dict[str, float], rerun: bool,
+              on_batch: Callable[[int, Solution], None] | None) -> Segments:
+    """Runs the stages as frames arrive, ``graph.incremental_batch`` at a time (:func:`stream.stream_capture`),
+    into ``result``; returns the segments. The stage cache is not used."""
+    from .stream import stream_capture
+
+    with stage("stream", timings):
+        rec = stream_capture(capture, config, on_batch=on_batch, thumbnail_width=THUMBNAIL_WIDTH if rerun else None)
+    timings.update(rec.stage_seconds)
+    if rec.focal is not None:
+        result.focal = rec.focal
+        result.capture = dataclasses.replace(capture, camera=rec.camera)
+    result.preprocessed, result.tracks, result.relations = rec.preprocessed, rec.tracks, rec.relations
+    result.linear, result.solution, result.batches = rec.linear, rec.solution, list(rec.batches)
+    result.thumbnails = rec.thumbnails
+    return rec.segments
 
 
 def _normal_model_identity(config: Config) -> str | None:
@@ -463,6 +495,8 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
         summary["incremental_batches"] = [int(b.registered.sum()) for b in result.batches]
         summary["incremental_batch_seconds"] = [round(float(b.residuals.get("batch_seconds", 0.0)), 3)
                                                 for b in result.batches]
+        if "stage_seconds" in result.batches[0].residuals:  # streamed (stream.py): each batch's seconds per stage
+            summary["incremental_stage_seconds"] = [b.residuals["stage_seconds"] for b in result.batches]
     summary["seconds"]["total"] = round(time.perf_counter() - t_start, 3)
     return summary
 

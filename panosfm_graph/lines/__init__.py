@@ -12,7 +12,7 @@ import logging
 import numpy as np
 
 from ..config import Config
-from ..data import Capture, Preprocessed, Segments, Tracks
+from ..data import Capture, ManhattanFrame, Preprocessed, Segments, Tracks
 from .detect import detect_segments
 from .manhattan import check_enough_manhattan, label_segments, manhattan_frame
 from .rotations import heading_drift, refine_rotations, rotate_heading
@@ -22,7 +22,7 @@ log = logging.getLogger("panosfm.lines")
 
 __all__ = [
     "detect_segments", "manhattan_frame", "label_segments", "refine_rotations",
-    "refine_manhattan_and_rotations", "preprocess", "track_lines",
+    "refine_manhattan_and_rotations", "refine_warm", "preprocess", "track_lines",
 ]
 
 
@@ -54,17 +54,7 @@ def refine_manhattan_and_rotations(segments: Segments, capture: Capture, config:
         R = refine_rotations(segments, labels, K, R_prior if config.rotation.drift_feedback else R_imu, mf,
                              config.rotation, R_wc_init=R)
         if config.rotation.drift_degree >= 0:
-            horizontal = (labels >= 0) & (labels != 2)
-            weight = np.bincount(segments.frame[horizontal], segments.lengths[horizontal], minlength=capture.n_frames)
-            count = np.bincount(segments.frame[horizontal], minlength=capture.n_frames)
-            weight[count < config.rotation.drift_min_horizontal] = 0.0  # too few to fix the frame's heading
-            if config.rotation.drift_weights == "frames":  # each frame with horizontal lines counts once
-                weight = (weight > 0).astype(np.float64)
-            ends = loop_pairs(R, config.rotation.drift_loop_deg)  # a turn apart, looking the same way
-            drift = heading_drift(R, R_imu, capture.timestamps, weight, config.rotation.drift_degree, mf.directions[2],
-                                  ends, config.rotation.drift_loop_weight)
-            R_prior = rotate_heading(R_imu, drift, mf.directions[2])
-            log.info("IMU heading drift over the capture: %.2f deg", np.degrees(drift[-1] - drift[0]))
+            R_prior = _drift_corrected(segments, labels, R, capture, mf, config)
         log.info("preprocess iteration %d: %d Manhattan segments of %d", it + 1, int(np.sum(labels >= 0)), segments.n)
     if config.rotation.drift_degree >= 0:  # the last rotations against the last drift estimate
         R = refine_rotations(segments, labels, K, R_prior, mf, config.rotation, R_wc_init=R,
@@ -74,6 +64,55 @@ def refine_manhattan_and_rotations(segments: Segments, capture: Capture, config:
     check_enough_manhattan(labels, config.manhattan)
     # contiguous as the stage cache returns it: a strided R_wc gives other last bits downstream (BLAS), so a
     # resumed run would not repeat the uninterrupted one exactly
+    return Preprocessed(segments=segments, manhattan=mf, labels=labels, R_wc=np.ascontiguousarray(R), R_wc_imu=R_imu)
+
+
+def _drift_corrected(segments: Segments, labels: np.ndarray, R: np.ndarray, capture: Capture, mf: ManhattanFrame,
+                     config: Config) -> np.ndarray:
+    """Returns the IMU rotations with the heading drift fitted to the corrections ``R`` made removed."""
+    R_imu = np.asarray(capture.R_wc_imu, dtype=np.float64)
+    horizontal = (labels >= 0) & (labels != 2)
+    weight = np.bincount(segments.frame[horizontal], segments.lengths[horizontal], minlength=capture.n_frames)
+    count = np.bincount(segments.frame[horizontal], minlength=capture.n_frames)
+    weight[count < config.rotation.drift_min_horizontal] = 0.0  # too few to fix the frame's heading
+    if config.rotation.drift_weights == "frames":  # each frame with horizontal lines counts once
+        weight = (weight > 0).astype(np.float64)
+    ends = loop_pairs(R, config.rotation.drift_loop_deg)  # a turn apart, looking the same way
+    drift = heading_drift(R, R_imu, capture.timestamps, weight, config.rotation.drift_degree, mf.directions[2],
+                          ends, config.rotation.drift_loop_weight)
+    log.info("IMU heading drift over the capture: %.2f deg", np.degrees(drift[-1] - drift[0]))
+    return rotate_heading(R_imu, drift, mf.directions[2])
+
+
+def refine_warm(segments: Segments, capture: Capture, config: Config, previous: Preprocessed) -> Preprocessed:
+    """Returns the preprocessing of a capture that grew by some frames (streaming; paper §3.1).
+
+    Warm-started from ``previous`` (its first frames are the capture's first): its refined
+    rotations start the old frames, the new ones start from the last refined one carried by the
+    IMU's relative rotations; the Manhattan frame is extracted again from all frames, its axes
+    matched to ``previous``'s (kept from the first batch, the later lines came out 6.6 times further
+    from the true surfaces: docs/decisions.md#streaming-preprocessing). One round of labelling,
+    refinement, drift fit and refinement against the drift-corrected IMU replaces
+    :func:`refine_manhattan_and_rotations`'s iterations.
+    """
+    K = capture.camera.K
+    R_imu = np.asarray(capture.R_wc_imu, dtype=np.float64)
+    old = len(previous.R_wc)
+    R = R_imu.copy()
+    R[:old] = previous.R_wc
+    if old:  # R_new = R_last R_imu,last^T R_imu,new: the IMU's motion since the last refined frame
+        R[old:] = previous.R_wc[old - 1] @ R_imu[old - 1].T @ R_imu[old:]
+    mf = manhattan_frame(segments, K, R, config.manhattan, reference=previous.manhattan)
+    labels = label_segments(segments, K, R, mf, config.manhattan)
+    check_enough_manhattan(labels, config.manhattan)
+    # against the raw IMU's relative rotations first: the drift fit must see the new frames' own corrections
+    R = refine_rotations(segments, labels, K, R_imu, mf, config.rotation, R_wc_init=R)
+    if config.rotation.drift_degree >= 0:
+        R_prior = _drift_corrected(segments, labels, R, capture, mf, config)
+        R = refine_rotations(segments, labels, K, R_prior, mf, config.rotation, R_wc_init=R,
+                             prior_weight=config.rotation.heading_weight)
+    labels = label_segments(segments, K, R, mf, config.manhattan)
+    check_enough_manhattan(labels, config.manhattan)
     return Preprocessed(segments=segments, manhattan=mf, labels=labels, R_wc=np.ascontiguousarray(R), R_wc_imu=R_imu)
 
 

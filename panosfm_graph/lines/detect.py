@@ -195,11 +195,17 @@ def detect_segments(capture: Capture, config: Config | DetectConfig,
                 if len(pending) > window:
                     results.append(pending.popleft().result())
             results.extend(f.result() for f in pending)
+    segments = segments_of_frames(results)
+    log.info("detected %d segments in %d frames (%.1f per frame)", segments.n, n, segments.n / max(n, 1))
+    return segments
+
+
+def segments_of_frames(results: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> Segments:
+    """Returns the :class:`Segments` of frames 0..F-1 from their :func:`detect_frame` results, in frame order."""
     counts = np.array([len(r[0]) for r in results], dtype=np.int64)
     offsets = np.concatenate([[0], np.cumsum(counts)])
     endpoints = np.concatenate([r[0] for r in results] + [np.zeros((0, 4), np.float32)]).astype(np.float32)
     colors = np.concatenate([r[1] for r in results] + [np.zeros((0, 3), np.uint8)]).astype(np.uint8)
     contrast = np.concatenate([r[2] for r in results] + [np.zeros(0, np.float32)]).astype(np.float32)
-    frame = np.repeat(np.arange(n, dtype=np.int32), counts)
-    log.info("detected %d segments in %d frames (%.1f per frame)", len(frame), n, len(frame) / max(n, 1))
+    frame = np.repeat(np.arange(len(results), dtype=np.int32), counts)
     return Segments(endpoints=endpoints, frame=frame, frame_offsets=offsets, colors=colors, contrast=contrast)

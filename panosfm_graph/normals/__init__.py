@@ -89,14 +89,24 @@ class NormalSource:
         """Returns frame ``f``'s (h, w, 3) camera-frame unit normals (towards the camera) and (h, w) validity."""
         raise NotImplementedError
 
-    def estimate(self, capture: Capture, pre: Preprocessed) -> NormalMaps:
-        """Returns the world-frame :class:`NormalMaps` of all frames (paper §3.2)."""
+    def estimate(self, capture: Capture, pre: Preprocessed, frames: np.ndarray | None = None,
+                 previous: NormalMaps | None = None) -> NormalMaps:
+        """Returns the world-frame :class:`NormalMaps` of all frames (paper §3.2).
+
+        ``frames`` (streaming, ``stream.py``): only those frames are estimated; the others are
+        copied from ``previous`` (the maps of the first ``previous.maps.shape[0]`` frames), or left
+        invalid where it has none.
+        """
         self.prepare(capture, pre)
         h, w, scale = lowres_shape(capture.camera, self.config.width)
         F = capture.n_frames
         maps = np.zeros((F, h, w, 3), dtype=np.float16)
         valid = np.zeros((F, h, w), dtype=bool)
-        for f in progress(range(F), f"normals ({self.name})", total=F):
+        if previous is not None and frames is not None:
+            k = min(F, previous.maps.shape[0])
+            maps[:k], valid[:k] = previous.maps[:k], previous.valid[:k]
+        todo = range(F) if frames is None else np.asarray(frames, np.int64)
+        for f in progress(todo, f"normals ({self.name})", total=len(todo)):
             n_c, ok = self.camera_normals(capture, pre, f, h, w, scale)
             # world = R_wc @ n_c for every pixel, i.e. n_c @ R_wc^T on rows
             maps[f] = (n_c.reshape(-1, 3) @ pre.R_wc[f].T).reshape(h, w, 3).astype(np.float16)
@@ -119,13 +129,15 @@ def make_source(config: NormalsConfig) -> NormalSource:
     return SOURCES[config.source](config)
 
 
-def estimate_normals(capture: Capture, pre: Preprocessed, config: NormalsConfig) -> NormalMaps:
+def estimate_normals(capture: Capture, pre: Preprocessed, config: NormalsConfig, frames: np.ndarray | None = None,
+                     previous: NormalMaps | None = None) -> NormalMaps:
     """Returns world-frame per-frame surface normal maps from the source ``config.source`` (paper §3.2).
 
     ``NormalMaps.source`` names the source actually used (``model`` falls back
-    to ``orientation-map`` when no model file exists).
+    to ``orientation-map`` when no model file exists). ``frames``/``previous``: only those frames
+    are estimated, the others copied from ``previous`` (:meth:`NormalSource.estimate`).
     """
-    return make_source(config).estimate(capture, pre)
+    return make_source(config).estimate(capture, pre, frames, previous)
 
 
 def camera_frame_maps(maps: NormalMaps, R_wc: np.ndarray) -> np.ndarray:

@@ -82,7 +82,7 @@ class OnnxNormals(NormalSource):
             return Path(self.config.model_path)
         return SHIPPED_MODEL if SHIPPED_MODEL.is_file() else None
 
-    def estimate(self, capture: Capture, pre: Preprocessed) -> NormalMaps:
+    def estimate(self, capture: Capture, pre: Preprocessed, frames=None, previous=None) -> NormalMaps:
         """Returns the model's world-frame normal maps, or the orientation map's when no model exists."""
         if self._model_path() is None:
             from .orientation_map import OrientationMapNormals
@@ -91,8 +91,8 @@ class OnnxNormals(NormalSource):
                 "no normal model (%s missing, no model_path given): falling back to the orientation map",
                 SHIPPED_MODEL,
             )
-            return OrientationMapNormals(self.config).estimate(capture, pre)
-        return super().estimate(capture, pre)
+            return OrientationMapNormals(self.config).estimate(capture, pre, frames, previous)
+        return super().estimate(capture, pre, frames, previous)
 
     def prepare(self, capture: Capture, pre: Preprocessed) -> None:
         self._sess = load_session(self._model_path())
