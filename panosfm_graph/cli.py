@@ -64,7 +64,8 @@ def _add_config_flags(p: argparse.ArgumentParser) -> None:
     g.add_argument("--strict", action="store_true", default=None,
                    help="output only the frames the lines fix (no frame placed by the spin's motion model)")
     g.add_argument("--incremental", type=int, default=None, metavar="N",
-                   help="solve incrementally, adding N frames per batch")
+                   help="stream the capture N frames at a time: an estimate after each batch, the last solved in "
+                        "full (--set graph.incremental_final_solve=False: as the others)")
     g.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
                    help="any Config field, e.g. --set relations.floor=False --set graph.robust=cauchy")
 

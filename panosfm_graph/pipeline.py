@@ -495,8 +495,11 @@ def _summary(capture: Capture, segments: Segments, result: RunResult, config: Co
         summary["incremental_batches"] = [int(b.registered.sum()) for b in result.batches]
         summary["incremental_batch_seconds"] = [round(float(b.residuals.get("batch_seconds", 0.0)), 3)
                                                 for b in result.batches]
-        if "stage_seconds" in result.batches[0].residuals:  # streamed (stream.py): each batch's seconds per stage
+        if "stage_seconds" in result.batches[0].residuals:  # streamed (stream.py): each batch's seconds per stage;
+            # batch seconds are latencies: from the batch's last frame read to its estimate
             summary["incremental_stage_seconds"] = [b.residuals["stage_seconds"] for b in result.batches]
+            lat = summary["incremental_batch_seconds"]
+            summary["incremental_latency_seconds"] = {"median": round(float(np.median(lat)), 3), "max": max(lat)}
     summary["seconds"]["total"] = round(time.perf_counter() - t_start, 3)
     return summary
 
