@@ -363,7 +363,8 @@ def _linear(capture: Capture, pre: Preprocessed, tracks: Tracks, relations: Rela
 
 def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
                    on_batch: Callable[[int, Solution], None] | None) -> Solution:
-    from .graph import bundle_adjust, bundle_adjust_incremental, place_by_motion_model, steady_or_hand_held
+    from .graph import (bundle_adjust, bundle_adjust_incremental, place_by_motion_model, solve_at_final_scale,
+                        steady_or_hand_held)
 
     if not result.linear.registered.any():  # nothing to adjust: the result says so (0 frames registered)
         log.warning("the linear solve registered no frame: bundle adjustment skipped")
@@ -388,11 +389,15 @@ def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
         if not config.graph.incremental_final_solve:  # the last batch is the result: kept hand-held
             return result.batches[-1]
         sol = result.batches[-1]  # the final solve of all frames: as the one-shot solve, then the spin style
-    else:
-        sol = bundle_adjust(pre, result.tracks, result.relations, result.linear, config.graph)
+        resolved = True
+    else:  # solved again at its final scale only if the spin style keeps it (docs/decisions.md#deferred-re-solve)
+        sol = bundle_adjust(pre, result.tracks, result.relations, result.linear, config.graph, resolve=False)
+        resolved = False
     # the steady linear solve is not a stage of its own: its residuals ride in the result (_linear_residuals)
-    sol, _ = steady_or_hand_held(pre, result.tracks, result.relations, result.linear.camera, config.linear,
-                                 config.graph, sol)
+    sol, steady_linear = steady_or_hand_held(pre, result.tracks, result.relations, result.linear.camera,
+                                             config.linear, config.graph, sol)
+    if steady_linear is None and not resolved:
+        sol = solve_at_final_scale(pre, result.tracks, result.relations, result.linear, config.graph, sol)
     # the frames the lines leave without a pose: placed by the spin's motion model where its std is small enough
     return place_by_motion_model(pre, result.tracks, sol, config.graph)
 

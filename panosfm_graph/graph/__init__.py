@@ -109,7 +109,7 @@ from .problem import (ARM_KEY, DRIFT_KEY, FLOOR_KEY, FOCAL_KEY, center_key, floo
 from .readout import line_extents
 from .rotation_only import rotation_bundle_adjust
 from .scale import _scaled
-from .solve import MAX_REJECT_ROUNDS, bundle_adjust, bundle_adjust_incremental
+from .solve import MAX_REJECT_ROUNDS, bundle_adjust, bundle_adjust_incremental, solve_at_final_scale
 from .spin import fit_spin, spin_arm_length, spin_fit
 from .style import steady_or_hand_held
 
@@ -117,6 +117,7 @@ __all__ = [
     "ARM_KEY", "CHUNK_OBS", "DRIFT_KEY", "FLOOR_KEY", "FOCAL_KEY", "FOCAL_PRIOR_FRAC", "GAUGE_SIGMA", "MAX_REJECT_ROUNDS",
     "bundle_adjust", "bundle_adjust_incremental", "center_key", "determinacy", "fit_spin", "floor_held_scale",
     "focal_sigma", "levenberg_marquardt", "line_extents", "line_key", "place_by_motion_model", "relation_residuals", "relation_sigmas",
-    "rotation_bundle_adjust", "rotation_key", "spin_arm_length", "spin_fit", "stand_key", "steady_or_hand_held",
+    "rotation_bundle_adjust", "rotation_key", "solve_at_final_scale", "spin_arm_length", "spin_fit", "stand_key",
+    "steady_or_hand_held",
     "_scaled",  # tests/test_graph.py
 ]

@@ -34,7 +34,7 @@ MAX_REJECT_ROUNDS = 3
 
 
 def bundle_adjust(pre: Preprocessed, tracks: Tracks, relations: Relations, initial: Solution,
-                  config: GraphConfig = GraphConfig()) -> Solution:
+                  config: GraphConfig = GraphConfig(), resolve: bool = True) -> Solution:
     """Returns the bundle-adjusted Solution (paper §3.4): lines + centres, then + rotations, then + focal.
 
     ``initial`` (e.g. from the linear solve) gives the registered frames, the
@@ -57,11 +57,27 @@ def bundle_adjust(pre: Preprocessed, tracks: Tracks, relations: Relations, initi
     ``residuals["scale_vs_initial"]``: the result's scale relative to ``initial`` (the incremental
     mode brings each batch back to it); ``residuals["resolved_at_scale"]``: the factor, the seconds,
     whether the second solve was kept, and both solves' RMS reprojection and registered frames (first, second).
+    With ``resolve`` False that second solve is left to :func:`solve_at_final_scale` (the pipeline: only where
+    the auto spin style keeps this solution, :func:`~panosfm_graph.graph.steady_or_hand_held`).
     """
-    sol = _resolve_at_scale(pre, tracks, relations, initial, config,
-                            _bundle_adjust_once(pre, tracks, relations, initial, config))
+    sol = _bundle_adjust_once(pre, tracks, relations, initial, config)
+    return solve_at_final_scale(pre, tracks, relations, initial, config, sol) if resolve else sol
+
+
+def solve_at_final_scale(pre: Preprocessed, tracks: Tracks, relations: Relations, initial: Solution,
+                         config: GraphConfig, sol: Solution) -> Solution:
+    """Returns ``sol`` (from ``bundle_adjust(..., resolve=False)`` of ``initial``) solved again at its final scale
+    where the scale checks moved it (:func:`bundle_adjust`), with the steadiness check made; what ``sol``'s
+    residuals say of the spin style stays."""
+    style = {k: sol.residuals[k] for k in _STYLE_KEYS if k in sol.residuals}
+    sol = _resolve_at_scale(pre, tracks, relations, initial, config, sol)
+    sol.residuals.update(style)
     _check_steady(sol, pre.manhattan.directions, config)
     return sol
+
+
+# what steady_or_hand_held adds to a solution's residuals: a second solve at the final scale keeps them
+_STYLE_KEYS = ("spin_style", "steady_check", "linear_steady", "frame_source")
 
 
 def _resolve_at_scale(pre: Preprocessed, tracks: Tracks, relations: Relations, initial: Solution,
