@@ -501,6 +501,32 @@ def test_ba_is_solved_again_at_the_scale_its_checks_chose():
     assert "resolved_at_scale" not in right.residuals and abs(right.residuals["scale_vs_initial"] - 1) < 0.25
 
 
+def test_a_second_solve_that_collapses_the_spin_is_not_kept(monkeypatch):
+    """_resolve_at_scale: a second solve whose arm shrank past resolve_scale_ratio (every centre at one point, as a
+    60-frame swaying spin gave: 0.29 m -> 1 mm) is not kept even where it fits the images better; the first stands."""
+    import panosfm_graph.graph.solve as solve_module
+
+    p, rel, lin, _ = _floor_on_furniture()
+    cfg = dataclasses.replace(FAST, floor_below_lines_min_obs=0)
+    once = bundle_adjust(p.preprocessed, p.tracks, rel, lin, dataclasses.replace(cfg, resolve_scale_ratio=0.0))
+    original = solve_module._bundle_adjust_once
+
+    def collapsed(pre, tracks, relations, initial, config, scale_checks=True):
+        sol = original(pre, tracks, relations, initial, config, scale_checks=scale_checks)
+        if scale_checks:
+            return sol
+        c = sol.centers.copy()
+        c[sol.registered] = c[sol.registered].mean(axis=0) + 1e-4 * (c[sol.registered] - c[sol.registered].mean(axis=0))
+        res = dict(sol.residuals, reprojection_rms_px=0.0)  # fits "better"
+        return dataclasses.replace(sol, centers=c, residuals=res)
+
+    monkeypatch.setattr(solve_module, "_bundle_adjust_once", collapsed)
+    sol = bundle_adjust(p.preprocessed, p.tracks, rel, lin, cfg)
+    rec = sol.residuals["resolved_at_scale"]
+    assert not rec["kept"] and rec["arm"][1] < 1e-3 * rec["arm"][0], rec
+    np.testing.assert_allclose(sol.centers[sol.registered], once.centers[once.registered], atol=1e-9)
+
+
 def test_floor_relations_the_linear_solve_dropped_stay_out():
     """Floor relations the linear solve dropped, every one (here: fewer floor lines than ``min_floor_lines``),
     are left out of the bundle adjustment too: no floor factor, the scale stays arbitrary; kept, they are used."""

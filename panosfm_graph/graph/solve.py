@@ -95,13 +95,20 @@ def _resolve_at_scale(pre: Preprocessed, tracks: Tracks, relations: Relations, i
     again = _bundle_adjust_once(pre, tracks, relations, start, config, scale_checks=False)
     first, r = sol.residuals, again.residuals
     rms0, rms1 = first.get("reprojection_rms_px"), r.get("reprojection_rms_px")
-    kept = rms0 is None or (rms1 is not None and rms1 <= rms0)
+    # the arm of both solves (the first after its scale checks): a second solve whose arm shrank past the ratio
+    # collapsed the spin (measured: a 60-frame swaying spin, the arm 0.33 m -> 1 mm, every centre at one point)
+    M = pre.manhattan.directions
+    arms = [spin_arm_length(x.centers[x.registered], x.R_wc[x.registered], M, config.spin_knot_deg,
+                            config.metric_arm_min_turn_deg) for x in (sol, again)]
+    collapsed = arms[0] is not None and arms[0] > 0 and (arms[1] is None or arms[1] < arms[0] / ratio)
+    kept = not collapsed and (rms0 is None or (rms1 is not None and rms1 <= rms0))
     record = {"factor": f, "seconds": round(time.perf_counter() - t0, 3), "kept": bool(kept),
-              "reprojection_rms_px": [rms0, rms1], "registered": [int(sol.registered.sum()), int(again.registered.sum())]}
-    if not kept:  # the second solve fits the images worse: it went elsewhere, the first stands
+              "reprojection_rms_px": [rms0, rms1], "registered": [int(sol.registered.sum()), int(again.registered.sum())],
+              "arm": arms}
+    if not kept:  # the second solve fits the images worse or lost the spin's arm: it went elsewhere, the first stands
         first["resolved_at_scale"] = record
-        log.info("BA: solved again at %.3g x the scale, it fits worse (RMS reprojection %.3f -> %.3f px): the "
-                 "first solve kept", f, rms0, rms1)
+        log.info("BA: solved again at %.3g x the scale, it fits worse (RMS reprojection %.3f -> %.3f px, arm %s -> "
+                 "%s): the first solve kept", f, rms0 or 0.0, rms1 or 0.0, *arms)
         return sol
     for key in _SCALE_DECISION:
         r.pop(key, None)
@@ -259,8 +266,8 @@ def bundle_adjust_incremental(pre: Preprocessed, tracks: Tracks, relations: Rela
     (default ``config.incremental_batch``, else 50). Each batch is a
     warm-started batch solve (:func:`bundle_adjust`, all phases) over the
     frames so far: frames and lines already estimated start from the previous
-    batch's estimate, new ones from ``initial``. (Measured against iSAM2 in
-    ``tools/bench_ba.py``: see the report.) In a batch's Solution only the
+    batch's estimate, new ones from ``initial`` (the warm re-solve against iSAM2:
+    ``tools/bench_isam2.py``, docs/decisions.md#isam2-for-the-streamed-ba). In a batch's Solution only the
     frames so far are registered and only lines seen in >= 2 of them are valid.
     With ``incremental_final_solve`` (default) one more, final, Solution
     follows the last batch: the whole problem solved from ``initial``, equal
