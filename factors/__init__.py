@@ -25,6 +25,7 @@ from factors.line_reprojection import (
 )
 from factors.robust import noise_model, projection_noise, robust_kernel, robust_loss, robust_weight, sigma_from_weight
 from factors.spin_prior import (
+    SpinPriorSet,
     horizontal_direction,
     spin_knots,
     spin_model_rows,
@@ -49,7 +50,7 @@ __all__ = [
     "imu_noise", "imu_rotation_factor",
     "LineReprojectionSet", "line_reprojection_error", "line_reprojection_factor", "reprojection_terms", "segment_distances", "segment_residuals",
     "noise_model", "projection_noise", "robust_kernel", "robust_loss", "robust_weight", "sigma_from_weight",
-    "horizontal_direction", "spin_knots", "spin_model_rows", "spin_noise", "spin_prior_error", "spin_prior_factor",
+    "SpinPriorSet", "horizontal_direction", "spin_knots", "spin_model_rows", "spin_noise", "spin_prior_error", "spin_prior_factor",
     "interpretation_normal", "line_extent", "plucker", "project_line",
     "taylor_from_point_direction", "taylor_to_point_direction",
 ]

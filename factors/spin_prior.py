@@ -131,3 +131,94 @@ def spin_noise(horizontal_sigma_m: float, vertical_sigma_m: float, robust: str =
     base = gtsam.noiseModel.Diagonal.Sigmas(np.array([horizontal_sigma_m, horizontal_sigma_m, vertical_sigma_m]))
     kernel = robust_kernel(robust, k)
     return base if kernel is None else gtsam.noiseModel.Robust.Create(kernel, base)
+
+
+class SpinPriorSet:
+    """The spin prior terms of many frames, evaluated and linearised in one vectorised call.
+
+    The same residuals and Jacobians as :func:`spin_prior_factor` (the residual is linear in its
+    variables), for every frame at once, with the noise of :func:`spin_noise` (diagonal sigmas, the
+    ``robust`` kernel with threshold ``k`` on each frame's whitened residual norm), for
+    :func:`panosfm_graph.graph.levenberg_marquardt`'s ``batches``: :meth:`error` is what the factors add
+    to ``graph.error`` and :meth:`linearize` what they linearise to. A term has four keys (centre, two
+    knots, arm), one more than Python can give a ``JacobianFactor``, so the arm's column is split off
+    exactly as :class:`factors.LineReprojectionSet` splits the focal length's: a 3-key (2-key with one
+    knot) ``JacobianFactor`` per frame, per centre and knot one (variable, arm) ``HessianFactor`` with
+    the cross term, one ``HessianFactor`` on the arm.
+    """
+
+    def __init__(self, center_keys, knot_keys, alpha, arm_key: int, manhattan: np.ndarray, view_dirs: np.ndarray,
+                 horizontal_sigma_m: float, vertical_sigma_m: float, robust: str = "none", k: float = 1.345):
+        from factors.robust import robust_weight
+
+        robust_weight(np.zeros(1), robust, k)  # an unknown kernel is an error here
+        self.robust, self.k = robust, float(k)
+        self.center_keys = [int(c) for c in center_keys]
+        self.knot_keys = np.asarray(knot_keys, dtype=np.uint64).reshape(len(self.center_keys), 2)
+        self.alpha = np.asarray(alpha, dtype=np.float64).reshape(-1)
+        self.arm_key = int(arm_key)
+        self.M = np.asarray(manhattan, dtype=np.float64).reshape(3, 3)
+        h = horizontal_direction(self.M, view_dirs)
+        self.arm = np.zeros((len(h), 3, 2))  # per frame: columns h, h_perp (Manhattan coordinates)
+        self.arm[:, 0, 0], self.arm[:, 1, 0], self.arm[:, 0, 1], self.arm[:, 1, 1] = h[:, 0], h[:, 1], -h[:, 1], h[:, 0]
+        self.inv_sigma = 1.0 / np.array([horizontal_sigma_m, horizontal_sigma_m, vertical_sigma_m], dtype=np.float64)
+        self._knots, self._knot_of = np.unique(self.knot_keys.ravel(), return_inverse=True)
+        self._knot_of = self._knot_of.reshape(-1, 2)
+        self._unit = gtsam.noiseModel.Unit.Create(3)
+
+    def __len__(self) -> int:
+        return len(self.center_keys)
+
+    def residuals(self, values: gtsam.Values) -> np.ndarray:
+        """Returns the (N, 3) residuals (m, Manhattan coordinates) of :func:`spin_prior_error` at ``values``."""
+        c = np.array([values.atPoint3(k) for k in self.center_keys]).reshape(-1, 3)
+        S = np.array([values.atPoint3(int(k)) for k in self._knots]).reshape(-1, 3)
+        s = (1.0 - self.alpha)[:, None] * S[self._knot_of[:, 0]] + self.alpha[:, None] * S[self._knot_of[:, 1]]
+        ab = np.asarray(values.atVector(self.arm_key), dtype=np.float64)
+        return (c - s) @ self.M.T - self.arm @ ab
+
+    def _whitened(self, values: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
+        from factors.robust import robust_weight
+
+        e = self.residuals(values) * self.inv_sigma
+        return e, np.sqrt(robust_weight(np.linalg.norm(e, axis=1), self.robust, self.k))
+
+    def error(self, values: gtsam.Values) -> float:
+        """Returns the kernel's cost summed over the frames' whitened residual norms (``graph.error`` of the
+        factors)."""
+        from factors.robust import robust_loss
+
+        e = self.residuals(values) * self.inv_sigma
+        return float(np.sum(robust_loss(np.linalg.norm(e, axis=1), self.robust, self.k)))
+
+    def linearize(self, values: gtsam.Values) -> gtsam.GaussianFactorGraph:
+        """Returns the whitened linearisation at ``values`` (``w`` the kernel's IRLS weight, as gtsam's
+        ``Robust::WhitenSystem``), the arm's column split as the class docstring tells."""
+        e, w = self._whitened(values)
+        W = w[:, None] * self.inv_sigma[None, :]  # (N, 3) row scales
+        b = -w[:, None] * e
+        A_c = W[:, :, None] * self.M[None]  # d r / d c = M
+        A_j = -(1.0 - self.alpha)[:, None, None] * A_c
+        A_j1 = -self.alpha[:, None, None] * A_c
+        A_ab = -W[:, :, None] * self.arm
+        gfg = gtsam.GaussianFactorGraph()
+        unit = self._unit
+        kj, kj1 = self.knot_keys[:, 0].tolist(), self.knot_keys[:, 1].tolist()
+        for i, kc in enumerate(self.center_keys):
+            if kj[i] == kj1[i]:
+                gfg.push_back(gtsam.JacobianFactor(kc, A_c[i], kj[i], A_j[i] + A_j1[i], b[i], unit))
+            else:
+                gfg.push_back(gtsam.JacobianFactor(kc, A_c[i], kj[i], A_j[i], kj1[i], A_j1[i], b[i], unit))
+        # the arm's part: cross terms A_x^T A_ab per centre and per knot (summed over its frames), then the arm's own
+        F = self.arm_key
+        z33, z3, z22, z2 = np.zeros((3, 3)), np.zeros(3), np.zeros((2, 2)), np.zeros(2)
+        cross_c = np.einsum("nij,nik->njk", A_c, A_ab)
+        for kc, g12 in zip(self.center_keys, cross_c):
+            gfg.push_back(gtsam.HessianFactor(kc, F, z33, g12, z3, z22, z2, 0.0))
+        cross_s = np.zeros((len(self._knots), 3, 2))
+        np.add.at(cross_s, self._knot_of[:, 0], np.einsum("nij,nik->njk", A_j, A_ab))
+        np.add.at(cross_s, self._knot_of[:, 1], np.einsum("nij,nik->njk", A_j1, A_ab))
+        for ks, g12 in zip(self._knots.tolist(), cross_s):
+            gfg.push_back(gtsam.HessianFactor(ks, F, z33, g12, z3, z22, z2, 0.0))
+        gfg.push_back(gtsam.HessianFactor(F, np.einsum("nij,nik->jk", A_ab, A_ab), np.einsum("nij,ni->j", A_ab, b), 0.0))
+        return gfg

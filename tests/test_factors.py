@@ -319,6 +319,41 @@ def test_spin_prior_jacobians_and_semantics(seed):
         np.testing.assert_allclose(f.unwhitenedError(on), expect, atol=1e-12)
 
 
+@pytest.mark.parametrize("robust,n_knots", [("none", 3), ("huber", 3), ("huber", 1)])
+def test_spin_prior_set_equals_the_factors(robust, n_knots):
+    """factors.SpinPriorSet: the same cost and the same linearisation (augmented Hessian, the arm's column split
+    into cross-term HessianFactors) as a graph of spin_prior_factor CustomFactors, with a robust kernel (some
+    frames far off the circle) and with one knot (both knot keys the same)."""
+    rng = np.random.default_rng(5)
+    M = random_rot(rng).T
+    n = 12
+    turned = np.linspace(0.0, 330.0, n)
+    j, alpha, K = factors.spin_knots(turned, 0.0 if n_knots == 1 else 165.0)
+    assert K == n_knots
+    centres = [gtsam.symbol("c", i) for i in range(n)]
+    knots = [(gtsam.symbol("s", jj), gtsam.symbol("s", min(jj + 1, K - 1))) for jj in j]
+    AB = gtsam.symbol("a", 0)
+    views = rng.normal(size=(n, 3))
+    v = gtsam.Values()
+    for i, c in enumerate(centres):
+        v.insert(c, rng.normal(size=3) * (0.02 if i % 4 else 0.5))  # every 4th far off: the kernel acts
+    for jj in range(K):
+        v.insert(gtsam.symbol("s", jj), rng.normal(size=3) * 0.01)
+    v.insert(AB, np.array([0.3, 0.02]))
+    noise = factors.spin_noise(0.02, 0.03, robust, 1.345)
+    graph = gtsam.NonlinearFactorGraph()
+    for c, kk, al, view in zip(centres, knots, alpha, views):
+        graph.add(factors.spin_prior_factor(c, kk, al, AB, M, view, noise))
+    batch = factors.SpinPriorSet(centres, knots, alpha, AB, M, views, 0.02, 0.03, robust, 1.345)
+    assert abs(batch.error(v) - graph.error(v)) < 1e-9 * max(1.0, graph.error(v))
+    order = gtsam.Ordering()
+    for k in v.keys():
+        order.push_back(k)
+    H_graph = graph.linearize(v).augmentedHessian(order)
+    H_set = batch.linearize(v).augmentedHessian(order)
+    np.testing.assert_allclose(H_set, H_graph, rtol=1e-9, atol=1e-9 * np.abs(H_graph).max())
+
+
 def test_spin_knots_interpolate_by_turn():
     """Knots spread evenly over the turn; each frame lies between knots j and j + 1 at fraction alpha."""
     turned = np.linspace(0.0, 380.0, 39)

@@ -51,8 +51,9 @@ def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase:
     :func:`levenberg_marquardt`, which linearises them in one vectorised call)
     instead of as CustomFactors in the graph, also when the focal length is a
     variable (phase 3; the set then linearises its column as cross-term
-    HessianFactors); ``counts["reprojection"]`` is the number of CustomFactors
-    the terms make without ``batched``, either way.
+    HessianFactors), and the spin prior as a :class:`factors.SpinPriorSet`;
+    ``counts["reprojection"]`` is the number of CustomFactors the terms make
+    without ``batched``, either way.
     """
     graph = gtsam.NonlinearFactorGraph()
     counts = {"reprojection": 0, "colinearity": 0, "orthogonal": 0, "parallel": 0, "junction": 0, "floor": 0,
@@ -118,9 +119,15 @@ def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase:
         noise = factors.spin_noise(config.spin_sigma_m, config.spin_sigma_m * config.spin_vertical_ratio,
                                    config.spin_robust, config.robust_k)
         j, alpha, n_knots = gauge["spin"]
-        for i, jj, al in zip(prob.frames, j, alpha):
-            knots = (stand_key(jj), stand_key(min(jj + 1, n_knots - 1)))
-            graph.add(factors.spin_prior_factor(center_key(i), knots, al, ARM_KEY, M, R_fixed[i][:, 2], noise))
+        knots = [(stand_key(jj), stand_key(min(jj + 1, n_knots - 1))) for jj in j]
+        if batched:  # one vectorised term (factors.SpinPriorSet): the same cost and linearisation
+            batches.append(factors.SpinPriorSet(
+                [center_key(i) for i in prob.frames], knots, alpha, ARM_KEY, M, R_fixed[prob.frames][:, :, 2],
+                config.spin_sigma_m, config.spin_sigma_m * config.spin_vertical_ratio, config.spin_robust,
+                config.robust_k))
+        else:
+            for i, kk, al in zip(prob.frames, knots, alpha):
+                graph.add(factors.spin_prior_factor(center_key(i), kk, al, ARM_KEY, M, R_fixed[i][:, 2], noise))
         walk = gtsam.noiseModel.Isotropic.Sigma(3, config.spin_walk_sigma_m)
         for jj in range(n_knots - 1):
             graph.add(gtsam.BetweenFactorPoint3(stand_key(jj), stand_key(jj + 1), np.zeros(3), walk))
