@@ -308,24 +308,11 @@ class LineReprojectionSet:
     def _push_focal_terms(self, gfg: gtsam.GaussianFactorGraph, A_l: np.ndarray, A_c: np.ndarray,
                           A_r: np.ndarray | None, a_f: np.ndarray, b: np.ndarray) -> None:
         """Adds the focal's part of the observations' whitened quadratics (A (N, 2, 3) per variable, a_f and b
-        (N, 2)): per variable one (variable, focal) HessianFactor with the summed cross terms, one on the focal.
-
-        GTSAM's HessianFactor error is ``0.5 (f - 2 x^T g + x^T G x)``: a Jacobian factor ``A x - b`` gives
-        ``G = A^T A``, ``g = A^T b``; the off-diagonal block G12 of a 2-key factor enters twice, so the cross
-        term ``dx^T A_x^T a_f df`` of ``0.5 ||A_x dx + a_f df - b||^2`` is ``G12 = A_x^T a_f`` with G11, G22, g zero.
-        """
-        F = self.focal_key
-        z3, z33, z1, z11 = np.zeros(3), np.zeros((3, 3)), np.zeros(1), np.zeros((1, 1))
+        (N, 2)): :func:`push_split_column`."""
         parts = [(self._lines, self._line_of, A_l), (self._centers, self._center_of, A_c)]
         if A_r is not None:
             parts.append((self._rots, self._rot_of, A_r))
-        for keys, of, A in parts:
-            cross = np.zeros((len(keys), 3))
-            np.add.at(cross, of, np.einsum("nij,ni->nj", A, a_f))  # sum over x's observations of A_x^T a_f
-            for key, g12 in zip(keys.tolist(), cross):
-                gfg.push_back(gtsam.HessianFactor(key, F, z33, g12.reshape(3, 1), z3, z11, z1, 0.0))
-        gfg.push_back(gtsam.HessianFactor(F, np.array([[float(np.sum(a_f * a_f))]]),
-                                          np.array([float(np.sum(a_f * b))]), 0.0))
+        push_split_column(gfg, self.focal_key, parts, a_f[:, :, None], b)
 
     def factors(self, chunk: int = 8, focal_key: int | None = None) -> list[gtsam.CustomFactor]:
         """Returns the same terms as :func:`line_reprojection_factor` s, one on each of :meth:`runs` ``(chunk)``,
@@ -348,3 +335,29 @@ class LineReprojectionSet:
         starts = np.flatnonzero(np.r_[True, lk[1:] != lk[:-1]])
         ends = np.r_[starts[1:], len(lk)]
         return [(int(c0), int(min(c0 + chunk, b))) for a, b in zip(starts, ends) for c0 in range(a, b, chunk)]
+
+
+def push_split_column(gfg: gtsam.GaussianFactorGraph, column_key: int, parts, A_col: np.ndarray, b: np.ndarray) -> None:
+    """Adds to ``gfg`` the part of many whitened rows ``A x + A_col dz - b`` that a shared variable ``column_key``
+    (``z``) adds to the rows' ``JacobianFactor`` s without it (a column Python cannot give them as a 4th key).
+
+    ``parts``: (keys (V,), of (N,), A (N, m, d)) per kind of variable, row ``n``'s block on ``keys[of[n]]``;
+    ``A_col`` (N, m, e) the rows' blocks on ``z``, ``b`` (N, m) their right-hand sides. GTSAM's HessianFactor
+    error is ``0.5 (f - 2 x^T g + x^T G x)``: a Jacobian factor ``A x - b`` gives ``G = A^T A``, ``g = A^T b``;
+    the off-diagonal block G12 of a 2-key factor enters twice, so the cross term ``dx^T A_x^T A_col dz`` is a
+    (variable, z) factor with ``G12 = sum A_x^T A_col`` over the variable's rows and G11, G22, g zero; then one
+    factor on ``z`` with ``sum A_col^T A_col`` and ``sum A_col^T b``. The cross-term factors are not positive
+    semi-definite on their own, but elimination sums all factors on a frontal variable, so the system solved is
+    the rows' (:class:`LineReprojectionSet`'s focal length, :class:`factors.SpinPriorSet`'s arm).
+    """
+    e = A_col.shape[2]
+    z_ee, z_e = np.zeros((e, e)), np.zeros(e)
+    for keys, of, A in parts:
+        d = A.shape[2]
+        cross = np.zeros((len(keys), d, e))
+        np.add.at(cross, of, np.einsum("nij,nik->njk", A, A_col))  # sum over each variable's rows of A_x^T A_col
+        z_dd, z_d = np.zeros((d, d)), np.zeros(d)
+        for key, g12 in zip(np.asarray(keys).tolist(), cross):
+            gfg.push_back(gtsam.HessianFactor(int(key), column_key, z_dd, g12, z_d, z_ee, z_e, 0.0))
+    gfg.push_back(gtsam.HessianFactor(column_key, np.einsum("nij,nik->jk", A_col, A_col),
+                                      np.einsum("nij,ni->j", A_col, b), 0.0))

@@ -24,6 +24,8 @@ import functools
 import gtsam
 import numpy as np
 
+from factors.line_reprojection import push_split_column
+
 
 def spin_knots(turned_deg: np.ndarray, knot_deg: float) -> tuple[np.ndarray, np.ndarray, int]:
     """Returns (j (N,) int, alpha (N,), number of knots): ``S = (1 - alpha) S_j + alpha S_{j+1}`` per frame.
@@ -209,16 +211,8 @@ class SpinPriorSet:
                 gfg.push_back(gtsam.JacobianFactor(kc, A_c[i], kj[i], A_j[i] + A_j1[i], b[i], unit))
             else:
                 gfg.push_back(gtsam.JacobianFactor(kc, A_c[i], kj[i], A_j[i], kj1[i], A_j1[i], b[i], unit))
-        # the arm's part: cross terms A_x^T A_ab per centre and per knot (summed over its frames), then the arm's own
-        F = self.arm_key
-        z33, z3, z22, z2 = np.zeros((3, 3)), np.zeros(3), np.zeros((2, 2)), np.zeros(2)
-        cross_c = np.einsum("nij,nik->njk", A_c, A_ab)
-        for kc, g12 in zip(self.center_keys, cross_c):
-            gfg.push_back(gtsam.HessianFactor(kc, F, z33, g12, z3, z22, z2, 0.0))
-        cross_s = np.zeros((len(self._knots), 3, 2))
-        np.add.at(cross_s, self._knot_of[:, 0], np.einsum("nij,nik->njk", A_j, A_ab))
-        np.add.at(cross_s, self._knot_of[:, 1], np.einsum("nij,nik->njk", A_j1, A_ab))
-        for ks, g12 in zip(self._knots.tolist(), cross_s):
-            gfg.push_back(gtsam.HessianFactor(ks, F, z33, g12, z3, z22, z2, 0.0))
-        gfg.push_back(gtsam.HessianFactor(F, np.einsum("nij,nik->jk", A_ab, A_ab), np.einsum("nij,ni->j", A_ab, b), 0.0))
+        # the arm's column (a 4th key): cross-term HessianFactors per centre and knot, one on the arm
+        push_split_column(gfg, self.arm_key, [(self.center_keys, np.arange(len(self)), A_c),
+                                              (self._knots, self._knot_of[:, 0], A_j),
+                                              (self._knots, self._knot_of[:, 1], A_j1)], A_ab, b)
         return gfg

@@ -517,7 +517,9 @@ def test_a_second_solve_that_collapses_the_spin_is_not_kept(monkeypatch):
             return sol
         c = sol.centers.copy()
         c[sol.registered] = c[sol.registered].mean(axis=0) + 1e-4 * (c[sol.registered] - c[sol.registered].mean(axis=0))
-        res = dict(sol.residuals, reprojection_rms_px=0.0)  # fits "better"
+        res = dict(sol.residuals, reprojection_rms_px=0.0,  # fits "better"; its arm measured as the solve does
+                   spin_arm_m=solve_module.spin_arm_length(c, sol.R_wc, pre.manhattan.directions, config.spin_knot_deg,
+                                                           config.metric_arm_min_turn_deg))
         return dataclasses.replace(sol, centers=c, residuals=res)
 
     monkeypatch.setattr(solve_module, "_bundle_adjust_once", collapsed)

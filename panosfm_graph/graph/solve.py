@@ -95,11 +95,9 @@ def _resolve_at_scale(pre: Preprocessed, tracks: Tracks, relations: Relations, i
     again = _bundle_adjust_once(pre, tracks, relations, start, config, scale_checks=False)
     first, r = sol.residuals, again.residuals
     rms0, rms1 = first.get("reprojection_rms_px"), r.get("reprojection_rms_px")
-    # the arm of both solves (the first after its scale checks): a second solve whose arm shrank past the ratio
-    # collapsed the spin (measured: a 60-frame swaying spin, the arm 0.33 m -> 1 mm, every centre at one point)
-    M = pre.manhattan.directions
-    arms = [spin_arm_length(x.centers[x.registered], x.R_wc[x.registered], M, config.spin_knot_deg,
-                            config.metric_arm_min_turn_deg) for x in (sol, again)]
+    # the arm of both solves (the first's after its scale checks; each solve measured it): a second solve whose arm
+    # shrank past the ratio collapsed the spin (measured: a 60-frame swaying spin, 0.29 m -> 1 mm, one point)
+    arms = [first.get("spin_arm_m"), r.get("spin_arm_m")]
     collapsed = arms[0] is not None and arms[0] > 0 and (arms[1] is None or arms[1] < arms[0] / ratio)
     kept = not collapsed and (rms0 is None or (rms1 is not None and rms1 <= rms0))
     record = {"factor": f, "seconds": round(time.perf_counter() - t0, 3), "kept": bool(kept),

@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 
 from ..data import Capture, Preprocessed
+from ..lines.tracking import median_step_deg
 from . import NormalSource, lowres_rays
 
 _SHIFT = 4  # fixed-point bits for cv2.fillConvexPoly (1/16 pixel)
@@ -156,8 +157,7 @@ class OrientationMapNormals(NormalSource):
         axes = pre.R_wc[:, :, 2]
         near = np.flatnonzero(axes @ axes[f] >= np.cos(np.radians(deg)))
         if self._stride is None:
-            steps = np.degrees(np.arccos(np.clip(np.sum(axes[1:] * axes[:-1], axis=1), -1.0, 1.0)))
-            med = float(np.median(steps)) if len(steps) else 0.0
+            med = median_step_deg(pre.R_wc)
             step = self.config.fuse_step_deg
             self._stride = max(1, int(round(step / med))) if step > 0 and med > 0 else 1
         near = near[(near - f) % self._stride == 0]  # a slow spin: every k-th frame, f itself among them
