@@ -23,6 +23,13 @@ from factors.line_reprojection import (
     segment_distances,
     segment_residuals,
 )
+from factors.point_projection import (
+    PointProjectionSet,
+    point_projection_error,
+    point_projection_factor,
+    point_terms,
+    project_points,
+)
 from factors.robust import noise_model, projection_noise, robust_kernel, robust_loss, robust_weight, sigma_from_weight
 from factors.spin_prior import (
     SpinPriorSet,
@@ -49,6 +56,7 @@ __all__ = [
     "drift_prior_error", "drift_prior_factor", "drift_times",
     "imu_noise", "imu_rotation_factor",
     "LineReprojectionSet", "line_reprojection_error", "line_reprojection_factor", "reprojection_terms", "segment_distances", "segment_residuals",
+    "PointProjectionSet", "point_projection_error", "point_projection_factor", "point_terms", "project_points",
     "noise_model", "projection_noise", "robust_kernel", "robust_loss", "robust_weight", "sigma_from_weight",
     "SpinPriorSet", "horizontal_direction", "spin_knots", "spin_model_rows", "spin_noise", "spin_prior_error", "spin_prior_factor",
     "interpretation_normal", "line_extent", "plucker", "project_line",

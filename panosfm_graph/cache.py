@@ -46,6 +46,7 @@ STAGE_SOURCES: dict[str, tuple[str, ...]] = {
     "normals": ("panosfm_graph.normals",),
     "relations": ("panosfm_graph.relations",),
     "linear": ("panosfm_graph.linear", "factors"),
+    "points": ("panosfm_graph.points",),
     "bundle_adjust": ("panosfm_graph.graph", "factors", "panosfm_graph.config"),  # graph uses config.SPIN_STYLES
 }
 

@@ -149,6 +149,35 @@ class TrackingConfig:
 
 
 @dataclass(frozen=True)
+class PointsConfig:
+    """Point tracks (our addition, issue #40; points/tracking.py): corners followed by optical flow."""
+
+    enabled: bool = True  # False: no point tracks (the motion model places frames by the spin and lines alone)
+    per_frame: int = 150  # corners kept per frame (tracked ones first, new ones seeded where none run)
+    quality: float = 0.01  # goodFeaturesToTrack's qualityLevel
+    min_distance_px: float = 12.0  # between corners
+    min_eigen_ratio: float = 0.3  # a corner's smaller over larger structure-tensor eigenvalue (below: an edge)
+    fb_px: float = 0.5  # forward-backward flow check
+    max_parallax_px: float = 20.0  # a step departs from the rotation's prediction by at most this
+    min_frames: int = 4  # shorter tracks are dropped
+    loop_min_turn_deg: float = 270.0  # a frame this far into the turn past an earlier one may close the loop ...
+    loop_max_deg: float = 15.0  # ... with the earlier frame closest in rotation, if within this
+    loop_every: int = 2  # ... every this many frames (0: no loop closure)
+    loop_parallax_px: float = 40.0  # ... its corners this far from the rotations' prediction at most
+    anchor_sigma_rel: float = 0.01  # with points the line-fixed centres are anchors within this share of the diameter
+    anchor_sigma_deg: float = 0.1  # ... and their rotations within this
+    relative_sigma_deg: float = 0.05  # std of the refined rotations' relative rotation between neighbouring frames
+    rotation_sigma_deg: float = 0.0  # ... and to its refined rotation (0: not)
+    spin_sigma_scale: float = 1.0  # the spin model's std for a frame the points hold, times graph.spin_sigma_m
+    reject_px: float = 1.0  # a track whose RMS residual exceeds this after a solve is dropped and the graph solved again
+    reject_rounds: int = 3  # ... at most this many times
+    sigma_px: float = 0.3  # std of a point observation in the motion model's graph (Huber, robust_k)
+    robust_k: float = 1.345
+    max_error_px: float = 30.0  # a point triangulated more than this off one of its observations is dropped
+    per_frame_graph: int = 40  # point observations per frame in the graph (the longest tracks)
+
+
+@dataclass(frozen=True)
 class NormalsConfig:
     """Paper §3.2: per-frame surface normals (model, orientation-map or oracle)."""
 
@@ -384,6 +413,7 @@ class Config:
     focal: FocalConfig = field(default_factory=FocalConfig)
     rotation: RotationConfig = field(default_factory=RotationConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    points: PointsConfig = field(default_factory=PointsConfig)
     normals: NormalsConfig = field(default_factory=NormalsConfig)
     relations: RelationsConfig = field(default_factory=RelationsConfig)
     linear: LinearConfig = field(default_factory=LinearConfig)

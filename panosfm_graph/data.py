@@ -225,6 +225,20 @@ class Tracks:
 
 
 @dataclass(frozen=True)
+class PointTracks:
+    """Point tracks (our addition; points/tracking.py): observation ``k`` is track ``track[k]`` seen in frame
+    ``frame[k]`` at ``xy[k]`` (undistorted pixels, working resolution), sorted by frame."""
+
+    frame: np.ndarray  # (N,) int32
+    track: np.ndarray  # (N,) int32
+    xy: np.ndarray  # (N, 2) float32
+
+    @property
+    def n(self) -> int:
+        return int(self.track.max()) + 1 if len(self.track) else 0
+
+
+@dataclass(frozen=True)
 class NormalMaps:
     """Per-frame surface normals in the WORLD frame (paper §3.2), at low resolution.
 

@@ -36,6 +36,7 @@ from .data import Camera, Capture
 from .errors import InputError
 from .export import poses_for_frames, read_colmap_text, read_lines_ply
 from .geometry import rotation_angle_deg  # noqa: F401  (re-exported: part of the evaluation API)
+from .geometry import triangulate_dlt
 
 log = logging.getLogger(__name__)
 # a registered frame is accurate when its centre lies within this share of the true trajectory's diameter and its
@@ -276,26 +277,6 @@ def visible_corners(corners: np.ndarray, R_wc: np.ndarray, centers: np.ndarray, 
         blocked = segments_blocked(centers[fi], corners[ni], boxes)
         vis[fi[blocked], ni[blocked]] = False
     return vis, method
-
-
-def triangulate_dlt(R_wc: np.ndarray, centers: np.ndarray, point_idx: np.ndarray, frame_idx: np.ndarray,
-                    xn: np.ndarray, n_points: int) -> np.ndarray:
-    """Returns (P, 4) homogeneous points triangulated by linear DLT from all their observations.
-
-    Observation k: point ``point_idx[k]`` seen in camera ``frame_idx[k]`` at normalised
-    coordinates ``xn[k]``; rows ``x P3 - P1`` and ``y P3 - P2`` with ``P = [R_cw | -R_cw c]``,
-    accumulated as A^T A per point and solved by its smallest eigenvector.
-    """
-    R_cw = np.transpose(R_wc[frame_idx], (0, 2, 1))
-    P = np.concatenate([R_cw, -np.einsum("kij,kj->ki", R_cw, centers[frame_idx])[..., None]], axis=2)  # (K, 3, 4)
-    r1 = xn[:, :1] * P[:, 2] - P[:, 0]
-    r2 = xn[:, 1:] * P[:, 2] - P[:, 1]
-    outer = np.einsum("ki,kj->kij", r1, r1) + np.einsum("ki,kj->kij", r2, r2)
-    M = np.zeros((n_points, 4, 4))
-    np.add.at(M, point_idx, outer)
-    _, vecs = np.linalg.eigh(M)
-    X = vecs[:, :, 0]
-    return X / np.linalg.norm(X, axis=1, keepdims=True)
 
 
 def _project_h(R_wc: np.ndarray, centers: np.ndarray, Xh: np.ndarray) -> np.ndarray:

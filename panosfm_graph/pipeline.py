@@ -29,7 +29,7 @@ import numpy as np
 from . import __version__
 from .cache import StageCache, stable_hash, stage_code_hash
 from .config import Config
-from .data import (RELATION_NAMES, Capture, NormalMaps, Preprocessed, Relations, Segments, Solution,
+from .data import (RELATION_NAMES, Capture, NormalMaps, PointTracks, Preprocessed, Relations, Segments, Solution,
                    Thumbnails, Tracks)
 from .errors import InputError
 from .progress import stage
@@ -50,6 +50,7 @@ class RunResult:
     capture: Capture | None = None
     preprocessed: Preprocessed | None = None
     tracks: Tracks | None = None
+    points: PointTracks | None = None  # point tracks (points/): the motion model's texture corners
     relations: Relations | None = None
     linear: Solution | None = None
     solution: Solution | None = None
@@ -64,7 +65,8 @@ class RunResult:
         fr = s.get("frames", {})
         if fr:
             by = fr.get("by_source") or {}
-            names = {"steady circle": "on the steady spin's circle", "motion model": "placed by the motion model"}
+            names = {"steady circle": "on the steady spin's circle", "points": "placed by point tracks",
+                     "motion model": "placed by the motion model"}
             how = (f": {by.get('lines', 0)} fixed by lines, " + ", ".join(f"{by[k]} {v}" for k, v in names.items()
                                                                            if by.get(k))
                    if any(by.get(k) for k in names) else "")
@@ -261,10 +263,18 @@ def _stages(capture: Capture, config: Config, cache: StageCache, result: RunResu
                                     timings, resumed)
             result.solution = result.linear
         if result.linear is not None and not done("linear"):
-            key = stable_hash(key, code("bundle_adjust"), config.graph)
+            key_points = stable_hash(key_pre, code("points"), config.points)
+
+            def points() -> PointTracks:  # tracked only when the bundle adjustment leaves frames to place
+                return _cached(cache, "points", key_points, PointTracks, lambda: _points(capture, pre, config),
+                               timings, [])
+
+            key = stable_hash(key, code("bundle_adjust"), config.graph, key_points)
             result.solution = _cached(
                 cache, "bundle_adjust", key, Solution,
-                lambda: _bundle_adjust(pre, result, config, on_batch), timings, resumed)
+                lambda: _bundle_adjust(pre, result, config, on_batch, points), timings, resumed)
+            if result.points is not None and "points" in timings:  # its own line, not inside the adjustment's
+                timings["bundle_adjust"] = max(timings["bundle_adjust"] - timings["points"], 0.0)
     return segments
 
 
@@ -341,6 +351,12 @@ def _track(capture: Capture, pre: Preprocessed, config: Config) -> Tracks:
     return track_lines(capture, pre, config)
 
 
+def _points(capture: Capture, pre: Preprocessed, config: Config) -> PointTracks:
+    from .points import track_points
+
+    return track_points(capture, pre.R_wc, config.points)
+
+
 def _normals(capture: Capture, pre: Preprocessed, config: Config) -> NormalMaps:
     from .normals import estimate_normals
 
@@ -362,7 +378,8 @@ def _linear(capture: Capture, pre: Preprocessed, tracks: Tracks, relations: Rela
 
 
 def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
-                   on_batch: Callable[[int, Solution], None] | None) -> Solution:
+                   on_batch: Callable[[int, Solution], None] | None,
+                   points: Callable[[], PointTracks] | None = None) -> Solution:
     from .graph import (bundle_adjust, bundle_adjust_incremental, place_by_motion_model, solve_at_final_scale,
                         steady_or_hand_held)
 
@@ -398,8 +415,12 @@ def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
                                              config.linear, config.graph, sol)
     if steady_linear is None and not resolved:
         sol = solve_at_final_scale(pre, result.tracks, result.relations, result.linear, config.graph, sol)
-    # the frames the lines leave without a pose: placed by the spin's motion model where its std is small enough
-    return place_by_motion_model(pre, result.tracks, sol, config.graph)
+    # the frames the lines leave without a pose: placed by the spin's motion model and the point tracks where the
+    # std is small enough (the points are tracked only when there are such frames)
+    if points is not None and config.points.enabled and config.graph.motion_model and not sol.registered.all():
+        result.points = points()
+    return place_by_motion_model(pre, result.tracks, sol, config.graph, points=result.points,
+                                 points_config=config.points)
 
 
 # --- outputs ----------------------------------------------------------------------------------------

@@ -10,8 +10,8 @@ Entities (world frame: right-handed, metres, +z up):
   ``world/camera/image/relations``LineStrips2D: this frame's relations, midpoint to midpoint
   ``world/camera/image/floor``    Points2D: midpoints of segments on the floor (floor relations)
   ``world/lines``                 LineStrips3D: the 3D lines whose tracks were seen so far
-  ``world/cameras``               Points3D: registered camera centres so far (green: fixed by lines, orange:
-                                  placed by the motion model)
+  ``world/cameras``               Points3D: registered camera centres so far (green: fixed by lines, blue: placed
+                                  by point tracks, orange: by the motion model alone)
   ``status``                      TextLog: "registered", or why the frame is not (WARN)
 ``batch`` timeline (incremental solves)
   ``batch/lines``, ``batch/cameras``
@@ -61,13 +61,16 @@ AXIS_RGB = np.array([[230, 50, 50], [50, 200, 50], [60, 110, 240], [150, 150, 15
 RELATION_RGB = np.array([[255, 0, 255], [0, 230, 230], [255, 220, 0], [255, 140, 0]], dtype=np.uint8)
 CAMERA_RGB = (40, 200, 40)
 MOTION_MODEL_RGB = (240, 150, 30)  # frames placed by the spin's motion model (graph.place_by_motion_model)
+POINTS_RGB = (40, 170, 230)  # frames placed by point tracks in the motion model's graph
 
 
 def camera_colors(solution: Solution) -> np.ndarray:
-    """Returns (F, 3) uint8 RGB per frame: green where the lines fix the frame, orange where the motion model placed it."""
+    """Returns (F, 3) uint8 RGB per frame: green where the lines fix the frame, blue where point tracks and orange
+    where the motion model alone placed it."""
     src = (solution.residuals or {}).get("frame_source") or [None] * len(solution.registered)
     out = np.tile(np.array(CAMERA_RGB, np.uint8), (len(solution.registered), 1))
     out[[s == "motion model" for s in src]] = MOTION_MODEL_RGB
+    out[[s == "points" for s in src]] = POINTS_RGB
     return out
 MODEL_UPDATES = 60  # the growing 3D model is logged at most this many times on the frame timeline
 

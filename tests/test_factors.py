@@ -509,3 +509,67 @@ def test_line_reprojection_set_with_focal_error_equals_its_factors(robust):
                                    rtol=1e-12, atol=1e-12)
         if fx != 1.0:
             assert abs(rep.error(v) - fixed_k.error(v)) > 1e-3 * rep.error(v)
+
+
+def _point_state(rng, n):
+    """n frames near the origin looking at points 2-4 m ahead, observations off by ~2 px."""
+    K = np.array([[700.0, 0, 320], [0, 690.0, 240], [0, 0, 1]])
+    R = np.stack([Rotation.from_rotvec(rng.normal(0, 0.1, 3)).as_matrix() for _ in range(n)])
+    C = rng.normal(0, 0.1, (n, 3))
+    P = C + np.einsum("nij,nj->ni", R, np.c_[rng.normal(0, 0.5, (n, 2)), rng.uniform(2, 4, n)])
+    uv, depth = factors.project_points(R, C, P, K)
+    assert np.all(depth > 1.0)
+    return K, R, C, P, uv + rng.normal(0, 2.0, uv.shape)
+
+
+@pytest.mark.parametrize("seed,with_rot", [(0, False), (1, True), (2, True)])
+def test_point_projection_jacobians(seed, with_rot):
+    rng = np.random.default_rng(seed)
+    K, R, C, P, uv = _point_state(rng, 1)
+    v = gtsam.Values()
+    ck, pk, rk = gtsam.symbol("c", 0), gtsam.symbol("p", 0), gtsam.symbol("r", 0)
+    v.insert(ck, C[0])
+    v.insert(pk, P[0])
+    if with_rot:
+        v.insert(rk, gtsam.Rot3(R[0]))
+    f = factors.point_projection_factor(ck, pk, uv[0], K, UNIT(2, 1.0), R_wc=None if with_rot else R[0],
+                                        rotation_key=rk if with_rot else None)
+    check_jacobians(f, v, eps=1e-6, rtol=1e-5, atol=1e-6)
+    # semantics: the exact projection gives a zero residual
+    exact, _ = factors.project_points(R, C, P, K)
+    f0 = factors.point_projection_factor(ck, pk, exact[0], K, UNIT(2, 1.0), R_wc=None if with_rot else R[0],
+                                         rotation_key=rk if with_rot else None)
+    np.testing.assert_allclose(f0.unwhitenedError(v), 0.0, atol=1e-9)
+    assert np.linalg.norm(f.unwhitenedError(v)) > 0.5
+
+
+@pytest.mark.parametrize("robust", ["none", "huber"])
+def test_point_projection_set_equals_its_factors(robust):
+    """The vectorised set gives the CustomFactors' cost and Gauss-Newton system, held and free rotations mixed."""
+    rng = np.random.default_rng(4)
+    n = 12
+    K, R, C, P, uv = _point_state(rng, n)
+    v = gtsam.Values()
+    ck = [gtsam.symbol("c", i % 4) for i in range(n)]  # 4 frames, 6 points: shared variables
+    pk = [gtsam.symbol("p", i % 6) for i in range(n)]
+    rk = [gtsam.symbol("r", i % 4) if i % 4 >= 2 else None for i in range(n)]  # frames 2, 3 free
+    for i in range(4):
+        v.insert(ck[i], C[i])
+        if i >= 2:
+            v.insert(gtsam.symbol("r", i), gtsam.Rot3(R[i]))
+    for i in range(6):
+        v.insert(pk[i], P[i])
+    R_obs = R[np.arange(n) % 4]
+    rep = factors.PointProjectionSet(ck, pk, uv, K, 0.8, R_obs, rotation_keys=rk, robust=robust, k=1.345)
+    g = gtsam.NonlinearFactorGraph()
+    noise = factors.noise_model(2, 0.8, robust, 1.345)
+    for i in range(n):
+        g.add(factors.point_projection_factor(ck[i], pk[i], uv[i], K, noise,
+                                              R_wc=None if rk[i] is not None else R_obs[i], rotation_key=rk[i]))
+    assert rep.error(v) == pytest.approx(g.error(v), rel=1e-12)
+    assert rep.error(v) > 10.0  # the observations are off the state: the test can fail
+    order = gtsam.Ordering()
+    for k in sorted(set(g.linearize(v).keys())):
+        order.push_back(k)
+    for a, b in zip(rep.linearize(v).hessian(order), g.linearize(v).hessian(order)):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.abs(b).max())

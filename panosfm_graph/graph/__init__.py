@@ -12,7 +12,8 @@ Variables (keys made by :func:`center_key`, :func:`rotation_key`, ...):
   when floor relations are used;
 * ``f0``    1-vector focal length fx in pixels (phase 3; fy keeps the aspect);
 * ``s<j>``  ``gtsam.Point3`` stand-point knot j, ``a0`` 2-vector arm (the spin prior, below);
-* ``d0``    1-vector heading-drift slope (rad over the capture) of the rotation prior (phases >= 2, optional, below).
+* ``d0``    1-vector heading-drift slope (rad over the capture) of the rotation prior (phases >= 2, optional, below);
+* ``p<k>``  ``gtsam.Point3`` point track k (only in :func:`place_by_motion_model`'s graph).
 
 Factors (``factors`` package), switched by :class:`GraphConfig`:
 line reprojection (one factor per chunk of a track's observations, sigma
@@ -96,7 +97,7 @@ Layout (one job per module; the package re-exports the names other modules use):
   :func:`bundle_adjust_incremental`;
 * :mod:`.style`         :func:`steady_or_hand_held`, the spin style chosen after the hand-held solve;
 * :mod:`.motion_model`  :func:`place_by_motion_model`, the frames the lines leave without a pose placed by the spin
-  model, with their std (issue #40).
+  model and the point tracks (:mod:`panosfm_graph.points`), with their std (issue #40).
 """
 from __future__ import annotations
 

@@ -12,13 +12,20 @@ builds one GTSAM graph of
   by a random walk, one arm; each centre on the circle within
   ``graph.spin_sigma_m`` (robust for the line-fixed ones, Gaussian for the
   frames to place);
-* for each frame to place, its observations of the adjusted 3D lines (held)
-  at its refined rotation: a frame whose lines fix its centre along one axis
-  keeps that, the motion model supplies the rest;
+* for each frame to place, its observations of the adjusted 3D lines (held):
+  a frame whose lines fix its centre along one axis keeps that, the motion
+  model supplies the rest;
+* with point tracks (:mod:`panosfm_graph.points`), each track seen by these
+  frames as a 3D point (triangulated from the current centres) and its
+  observations (:class:`factors.PointProjectionSet`); the frames to place then
+  get their rotation as a variable too, tied to their neighbours' by the
+  refined rotations' relative rotation (``points.relative_sigma_deg``), so the
+  points correct the rotation drift of a stretch no line holds;
 
 solves it, and reads each placed centre's marginal covariance. A frame whose
 largest std is at most ``graph.motion_max_sigma_rel`` of the spin's diameter
-gets that pose (source "motion model"); the others stay without one, with
+gets that pose (source "points" when at least ``MIN_POINT_OBS`` point
+observations hold it, else "motion model"); the others stay without one, with
 the reason. ``graph.motion_model`` False (``panosfm run --strict``): only
 line-fixed frames, as before.
 """
@@ -34,23 +41,28 @@ import numpy as np
 import factors
 
 from ..config import GraphConfig
-from ..data import Preprocessed, Solution, Tracks
-from ..geometry import turned_degrees
+from ..config import PointsConfig
+from ..data import PointTracks, Preprocessed, Solution, Tracks
+from ..geometry import triangulate_dlt, turned_degrees
 from .factor_graph import reprojection_kernel
-from .problem import ARM_KEY, center_key, line_key, stand_key
+from .lm import levenberg_marquardt
+from .problem import ARM_KEY, center_key, line_key, point_key, rotation_key, stand_key
 from .spin import fit_spin
 
 log = logging.getLogger("panosfm.graph")
 
 HOLD_SIGMA = 1e-4  # solution units: the line-fixed centres and the lines are held
 MIN_FIXED = 6  # fewer line-fixed frames: no motion model
+MIN_POINT_OBS = 6  # a placed frame with this many point observations is placed by "points"
 
 
-def place_by_motion_model(pre: Preprocessed, tracks: Tracks, sol: Solution, config: GraphConfig) -> Solution:
+def place_by_motion_model(pre: Preprocessed, tracks: Tracks, sol: Solution, config: GraphConfig,
+                          points: PointTracks | None = None, points_config: PointsConfig = PointsConfig()
+                          ) -> Solution:
     """Returns ``sol`` with the frames the motion model places within its sigma bound registered (module docstring).
 
     ``residuals["frame_source"]`` (per frame: "lines", "steady circle" where the steady style placed it,
-    "motion model" or None),
+    "points", "motion model" or None),
     ``residuals["frame_sigma_rel"]`` (per frame: the placed centre's largest std over the spin's diameter;
     None for line-fixed and unplaced frames) and ``residuals["motion_model"]`` (counts, bound, seconds).
     """
@@ -78,49 +90,57 @@ def place_by_motion_model(pre: Preprocessed, tracks: Tracks, sol: Solution, conf
     # 1.7x too small on one and 1.3x too large on the other: docs/decisions.md#motion-model-placement)
     model_sigma = config.spin_sigma_m
 
-    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    centers0 = sol.centers.copy()
+    centers0[todo] = _predict(stand, arm, M, R[todo][:, :, 2], j[todo], alpha[todo])
+    n_pts, batches, point_init = np.zeros(F, np.int64), [], {}
+    if points is not None and len(points.frame):
+        pset, n_pts, point_init = _point_observations(centers0, points, np.concatenate([fixed, todo]), sol.registered,
+                                                      R, sol.camera.K, points_config)
+        if pset is not None:
+            batches.append(pset)
+    # a frame the points hold follows them rather than the spin model (a sway the model cannot follow would otherwise
+    # turn the frames held only up to the turn-for-shift ambiguity of distant points: docs/decisions.md#point-tracks)
+    scale = np.where(n_pts >= MIN_POINT_OBS, points_config.spin_sigma_scale, 1.0)
+    # with points the line-fixed frames are anchors, not held: the points fix the frames' relative poses far better
+    # than the lines (measured, office seed 2 swaying: held, the placed stretch 6-7 % of the diameter off and turned
+    # 0.6-1.0 deg; the line-fixed frames held at their true poses instead, 0.4 %: docs/decisions.md#point-tracks)
+    fixed_sigma = points_config.anchor_sigma_rel * diameter if batches else HOLD_SIGMA
+    graph, values = _spin_graph(sol, centers0, fixed, todo, stand, arm, M, R, j, alpha, n_knots, config, scale,
+                                fixed_sigma)
+    for key, X in point_init.items():
+        values.insert(key, X)
+    if batches:
+        _add_rotations(graph, values, fixed, todo, R, pre.R_wc, points_config)
     hold = gtsam.noiseModel.Isotropic.Sigma(3, HOLD_SIGMA)
-    vertical = model_sigma * config.spin_vertical_ratio
-    fixed_noise = factors.spin_noise(model_sigma, vertical, config.spin_robust, config.robust_k)
-    free_noise = factors.spin_noise(model_sigma, vertical)
-    for k in range(n_knots):
-        values.insert(stand_key(k), stand[k])
-        if k:
-            graph.add(gtsam.BetweenFactorPoint3(stand_key(k - 1), stand_key(k), np.zeros(3),
-                                                gtsam.noiseModel.Isotropic.Sigma(3, config.spin_walk_sigma_m)))
-    values.insert(ARM_KEY, arm)
-    for i in np.concatenate([fixed, todo]):
-        free = not sol.registered[i]
-        if free:
-            values.insert(center_key(i), _predict(stand, arm, M, R[i][None, :, 2], j[i:i + 1], alpha[i:i + 1])[0])
-        else:
-            values.insert(center_key(i), sol.centers[i])
-            graph.add(gtsam.PriorFactorPoint3(center_key(i), sol.centers[i], hold))
-        knots = (stand_key(j[i]), stand_key(min(j[i] + 1, n_knots - 1)))
-        graph.add(factors.spin_prior_factor(center_key(i), knots, alpha[i], ARM_KEY, M, R[i][:, 2],
-                                            free_noise if free else fixed_noise))
-    n_obs = _add_line_observations(graph, values, pre, tracks, sol, todo, R, config, hold)
+    free_rot = len(batches) > 0
+    n_obs = _add_line_observations(graph, values, pre, tracks, sol, todo, R, config, hold, free_rot)
     try:
-        result = gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
-        marginals = gtsam.Marginals(graph, result)
+        result, batches, n_pts, dropped = _solve_rejecting_points(graph, values, batches, n_pts, points_config)
+        gfg = graph.linearize(result)
+        for b in batches:
+            gfg.push_back(b.linearize(result))
+        marginals = gtsam.Marginals(gfg, result)
         sig = np.array([np.sqrt(np.linalg.eigvalsh(marginals.marginalCovariance(center_key(i)))[-1]) for i in todo])
     except RuntimeError as e:  # an indeterminate system: leave the frames out rather than guess
         log.warning("motion model: not solved (%s); frames left without a pose", str(e).splitlines()[0])
         res["motion_model"] = {"placed": 0, "error": str(e).splitlines()[0]}
         return dataclasses.replace(sol, residuals=res)
-    rel = sig / diameter
+    # a frame the points place inherits the anchors' own error, which the anchors share rather than average out
+    anchored = np.where(n_pts[todo] >= MIN_POINT_OBS, points_config.anchor_sigma_rel * diameter, 0.0)
+    rel = np.hypot(sig, anchored) / diameter
     ok = rel <= config.motion_max_sigma_rel
     centers, registered, R_out = sol.centers.copy(), sol.registered.copy(), sol.R_wc.copy()
     for i, s_rel, good in zip(todo, rel, ok):
         res["frame_sigma_rel"][i] = float(s_rel)
         if good:
             centers[i] = result.atPoint3(center_key(i))
-            R_out[i] = pre.R_wc[i]
+            R_out[i] = result.atRot3(rotation_key(i)).matrix() if free_rot else pre.R_wc[i]
             registered[i] = True
-            source[i] = "motion model"
+            source[i] = "points" if n_pts[i] >= MIN_POINT_OBS else "motion model"
     res["motion_model"] = {"placed": int(ok.sum()), "left_out": int((~ok).sum()), "line_fixed": int(len(fixed)),
                            "model_sigma_rel": model_sigma / diameter,
                            "max_sigma_rel": config.motion_max_sigma_rel, "observations": n_obs,
+                           "point_observations": int(n_pts.sum()), "point_tracks_rejected": dropped,
                            "sigma_rel_median": float(np.median(rel)), "seconds": round(time.perf_counter() - t0, 3)}
     log.info("motion model: %d of %d frames placed (std <= %.1f %% of the spin's diameter), %d left out",
              int(ok.sum()), len(todo), 100 * config.motion_max_sigma_rel, int((~ok).sum()))
@@ -136,9 +156,131 @@ def _predict(stand: np.ndarray, arm: np.ndarray, M: np.ndarray, view_dirs: np.nd
     return S + off @ M[:2]
 
 
+def _spin_graph(sol: Solution, centers0: np.ndarray, fixed: np.ndarray, todo: np.ndarray, stand: np.ndarray,
+                arm: np.ndarray, M: np.ndarray, R: np.ndarray, j: np.ndarray, alpha: np.ndarray, n_knots: int,
+                config: GraphConfig, scale: np.ndarray, fixed_sigma: float = HOLD_SIGMA
+                ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+    """Returns the graph and initial values (``centers0``) of the spin model (module docstring): the line-fixed
+    centres held (within ``fixed_sigma``), the frames to place on the fitted model within its std times ``scale``
+    (F,)."""
+    model_sigma = config.spin_sigma_m
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    hold = gtsam.noiseModel.Isotropic.Sigma(3, fixed_sigma)
+    vertical = model_sigma * config.spin_vertical_ratio
+    fixed_noise = factors.spin_noise(model_sigma, vertical, config.spin_robust, config.robust_k)
+    free_noise = {v: factors.spin_noise(model_sigma * v, vertical * v) for v in np.unique(scale[todo])}
+    for k in range(n_knots):
+        values.insert(stand_key(k), stand[k])
+        if k:
+            graph.add(gtsam.BetweenFactorPoint3(stand_key(k - 1), stand_key(k), np.zeros(3),
+                                                gtsam.noiseModel.Isotropic.Sigma(3, config.spin_walk_sigma_m)))
+    values.insert(ARM_KEY, arm)
+    for i in np.concatenate([fixed, todo]):
+        free = not sol.registered[i]
+        values.insert(center_key(i), centers0[i])
+        if not free:
+            graph.add(gtsam.PriorFactorPoint3(center_key(i), sol.centers[i], hold))
+        knots = (stand_key(j[i]), stand_key(min(j[i] + 1, n_knots - 1)))
+        graph.add(factors.spin_prior_factor(center_key(i), knots, alpha[i], ARM_KEY, M, R[i][:, 2],
+                                            free_noise[scale[i]] if free else fixed_noise))
+    return graph, values
+
+
+def _solve_rejecting_points(graph, values, batches: list, n_pts: np.ndarray, config: PointsConfig
+                            ) -> tuple[gtsam.Values, list, np.ndarray, int]:
+    """Returns (the solution, the batches and (F,) point observations per frame left, point tracks dropped).
+
+    Solves, then drops the point tracks whose RMS residual exceeds ``points.reject_px`` and solves again from there,
+    at most ``points.reject_rounds`` times: a corner where a near edge crosses a far one (a T-junction) slides
+    with the parallax and follows no 3D point; measured, office seed 2 swaying: 22 % of the observations of
+    frames 75-104 over 1 px off with the true poses, and the placed stretch 7 % of the diameter off before
+    (docs/decisions.md#point-tracks)."""
+    result, _ = levenberg_marquardt(graph, values, max_iterations=50, batches=batches)
+    dropped = 0
+    for _ in range(config.reject_rounds if batches else 0):
+        pset = batches[0]
+        bad = pset.point_rms(result) > config.reject_px
+        if not bad.any():
+            break
+        gone = set(np.asarray(pset.point_keys)[bad].tolist())
+        dropped += len(gone)
+        frame_of = np.array([gtsam.Symbol(k).index() for k in pset.center_keys])
+        n_pts = n_pts - np.bincount(frame_of[bad], minlength=len(n_pts))
+        pset = pset.subset(~bad)
+        kept_points = set(pset.point_keys)
+        for key in gone - kept_points:
+            result.erase(key)
+        batches = [pset] if len(pset) else []
+        result, _ = levenberg_marquardt(graph, result, max_iterations=50, batches=batches)
+    return result, batches, n_pts, dropped
+
+
+def _add_rotations(graph, values, fixed: np.ndarray, todo: np.ndarray, R: np.ndarray, R_refined: np.ndarray,
+                   config: PointsConfig) -> None:
+    """Adds every frame's rotation as a variable: the line-fixed ones anchored (``points.anchor_sigma_deg``), each
+    frame to place tied to its
+    neighbours by the refined rotations' relative rotation (std ``points.relative_sigma_deg``) and to its refined
+    rotation (``points.rotation_sigma_deg``; 0: not)."""
+    hold = gtsam.noiseModel.Isotropic.Sigma(3, np.deg2rad(config.anchor_sigma_deg))
+    rel = gtsam.noiseModel.Isotropic.Sigma(3, np.deg2rad(config.relative_sigma_deg))
+    for i in fixed:
+        values.insert(rotation_key(int(i)), gtsam.Rot3(R[i]))
+        graph.add(gtsam.PriorFactorRot3(rotation_key(int(i)), gtsam.Rot3(R[i]), hold))
+    own = gtsam.noiseModel.Isotropic.Sigma(3, np.deg2rad(config.rotation_sigma_deg or 1.0))
+    for i in todo:
+        values.insert(rotation_key(int(i)), gtsam.Rot3(R[i]))
+        if config.rotation_sigma_deg > 0:
+            graph.add(gtsam.PriorFactorRot3(rotation_key(int(i)), gtsam.Rot3(R_refined[i]), own))
+    known = np.zeros(len(R), bool)
+    known[np.concatenate([fixed, todo])] = True
+    pairs = {(a, a + 1) for i in todo for a in (i - 1, i) if a >= 0 and a + 1 < len(R) and known[a] and known[a + 1]}
+    for a, b in sorted(pairs):
+        graph.add(factors.imu_rotation_factor(rotation_key(a), rotation_key(b), R_refined[a], R_refined[b], rel))
+
+
+def _point_observations(centers: np.ndarray, points: PointTracks, frames: np.ndarray, held: np.ndarray, R: np.ndarray,
+                        K: np.ndarray, config: PointsConfig
+                        ) -> tuple[factors.PointProjectionSet | None, np.ndarray, dict[int, np.ndarray]]:
+    """Returns (the observations of the point tracks seen by ``frames`` as one set, (F,) their number per frame,
+    {point key: the point triangulated from ``centers`` (F, 3) at rotations ``R``}).
+
+    A point behind a camera, or more than ``points.max_error_px`` off an observation by a line-fixed frame
+    (``held``, (F,) bool; the others start from the spin model's guess), is dropped; each
+    frame keeps its ``points.per_frame_graph`` observations of the longest tracks; a point needs two."""
+    F = len(R)
+    n_added = np.zeros(F, np.int64)
+    sel = np.isin(points.frame, frames)
+    f, t, uv = points.frame[sel], points.track[sel], points.xy[sel].astype(np.float64)
+    if not len(f):
+        return None, n_added, {}
+    ids, t = np.unique(t, return_inverse=True)
+    xn = np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0], (uv[:, 1] - K[1, 2]) / K[1, 1]], axis=1)
+    Xh = triangulate_dlt(R, centers, t, f, xn, len(ids))
+    ok_pt = np.abs(Xh[:, 3]) > 1e-9
+    X = Xh[:, :3] / np.where(ok_pt, Xh[:, 3], 1.0)[:, None]
+    proj, depth = factors.project_points(R[f], centers[f], X[t], K)
+    bad = (depth <= 0) | ((np.hypot(*(proj - uv).T) > config.max_error_px) & held[f])
+    ok_pt &= np.bincount(t, weights=bad, minlength=len(ids)) == 0
+    length = np.bincount(t, minlength=len(ids))
+    obs = np.flatnonzero(ok_pt[t])
+    obs = obs[np.lexsort((-length[t[obs]], f[obs]))]  # by frame, longest tracks first
+    rank = np.arange(len(obs)) - np.searchsorted(f[obs], f[obs])
+    obs = obs[rank < config.per_frame_graph]
+    obs = obs[np.bincount(t[obs], minlength=len(ids))[t[obs]] >= 2]
+    if not len(obs):
+        return None, n_added, {}
+    fo = f[obs]
+    pset = factors.PointProjectionSet([center_key(int(i)) for i in fo], [point_key(int(p)) for p in t[obs]], uv[obs],
+                                      K, config.sigma_px, R[fo], rotation_keys=[rotation_key(int(i)) for i in fo],
+                                      robust="huber", k=config.robust_k)
+    np.add.at(n_added, fo, 1)
+    return pset, n_added, {point_key(int(p)): X[p] for p in np.unique(t[obs])}
+
+
 def _add_line_observations(graph, values, pre: Preprocessed, tracks: Tracks, sol: Solution, frames: np.ndarray,
-                           R: np.ndarray, config: GraphConfig, hold) -> int:
-    """Adds the frames' observations of the solution's valid lines (held) at rotations ``R``; returns their number."""
+                           R: np.ndarray, config: GraphConfig, hold, free_rotation: bool = False) -> int:
+    """Adds the frames' observations of the solution's valid lines (held) at rotations ``R`` (or, with
+    ``free_rotation``, at their rotation variables); returns their number."""
     seg = pre.segments
     tr = tracks.track_of
     valid = sol.lines.valid if len(sol.lines.valid) == tracks.n else np.zeros(tracks.n, bool)
@@ -154,6 +296,7 @@ def _add_line_observations(graph, values, pre: Preprocessed, tracks: Tracks, sol
         graph.add(gtsam.PriorFactorPoint3(line_key(t), sol.lines.taylor[t], hold))
     for k in s:
         f, t = int(seg.frame[k]), int(tr[k])
-        graph.add(factors.line_reprojection_factor(line_key(t), [center_key(f)], seg.endpoints[k], dirs[t], K, noise,
-                                                   R_wc_fixed=R[f][None]))
+        graph.add(factors.line_reprojection_factor(
+            line_key(t), [center_key(f)], seg.endpoints[k], dirs[t], K, noise,
+            rotation_keys=[rotation_key(f)] if free_rotation else None, R_wc_fixed=None if free_rotation else R[f][None]))
     return int(len(s))

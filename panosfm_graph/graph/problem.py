@@ -34,6 +34,11 @@ def line_key(t: int) -> int:
     return gtsam.symbol("l", int(t))
 
 
+def point_key(p: int) -> int:
+    """Returns the key of point track ``p`` (Point3; the motion model's point observations)."""
+    return gtsam.symbol("p", int(p))
+
+
 FLOOR_KEY = gtsam.symbol("h", 0)
 FOCAL_KEY = gtsam.symbol("f", 0)
 ARM_KEY = gtsam.symbol("a", 0)  # spin prior: the arm (a, b) (2-vector)
