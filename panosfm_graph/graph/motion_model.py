@@ -246,7 +246,8 @@ def _point_observations(centers: np.ndarray, points: PointTracks, frames: np.nda
 
     A point behind a camera, or more than ``points.max_error_px`` off an observation by a line-fixed frame
     (``held``, (F,) bool; the others start from the spin model's guess), is dropped; each
-    frame keeps its ``points.per_frame_graph`` observations of the longest tracks; a point needs two."""
+    frame keeps its ``points.per_frame_graph`` observations of the tracks spanning the most frames; a point needs
+    two."""
     F = len(R)
     n_added = np.zeros(F, np.int64)
     sel = np.isin(points.frame, frames)
@@ -261,9 +262,12 @@ def _point_observations(centers: np.ndarray, points: PointTracks, frames: np.nda
     proj, depth = factors.project_points(R[f], centers[f], X[t], K)
     bad = (depth <= 0) | ((np.hypot(*(proj - uv).T) > config.max_error_px) & held[f])
     ok_pt &= np.bincount(t, weights=bad, minlength=len(ids)) == 0
-    length = np.bincount(t, minlength=len(ids))
+    first, last = np.full(len(ids), np.iinfo(np.int64).max), np.full(len(ids), -1)
+    np.minimum.at(first, t, f)
+    np.maximum.at(last, t, f)
+    span = last - first  # frames a track spans: a track that closes the loop spans a turn, and is kept first
     obs = np.flatnonzero(ok_pt[t])
-    obs = obs[np.lexsort((-length[t[obs]], f[obs]))]  # by frame, longest tracks first
+    obs = obs[np.lexsort((-span[t[obs]], f[obs]))]  # by frame, longest tracks first
     rank = np.arange(len(obs)) - np.searchsorted(f[obs], f[obs])
     obs = obs[rank < config.per_frame_graph]
     obs = obs[np.bincount(t[obs], minlength=len(ids))[t[obs]] >= 2]
