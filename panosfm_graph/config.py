@@ -167,14 +167,12 @@ class PointsConfig:
     anchor_sigma_rel: float = 0.01  # with points the line-fixed centres are anchors within this share of the diameter
     anchor_sigma_deg: float = 0.1  # ... and their rotations within this
     relative_sigma_deg: float = 0.05  # std of the refined rotations' relative rotation between neighbouring frames
-    rotation_sigma_deg: float = 0.0  # ... and to its refined rotation (0: not)
-    spin_sigma_scale: float = 1.0  # the spin model's std for a frame the points hold, times graph.spin_sigma_m
     reject_px: float = 1.0  # a track whose RMS residual exceeds this after a solve is dropped and the graph solved again
     reject_rounds: int = 3  # ... at most this many times
     sigma_px: float = 0.3  # std of a point observation in the motion model's graph (Huber, robust_k)
     robust_k: float = 1.345
-    max_error_px: float = 30.0  # a point triangulated more than this off one of its observations is dropped
-    per_frame_graph: int = 40  # point observations per frame in the graph (the longest tracks)
+    max_error_px: float = 30.0  # a point triangulated more than this off a line-fixed frame's observation is dropped
+    per_frame_graph: int = 40  # point observations per frame in the graph (the tracks spanning the most frames)
 
 
 @dataclass(frozen=True)

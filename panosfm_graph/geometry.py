@@ -130,3 +130,8 @@ def triangulate_dlt(R_wc: np.ndarray, centers: np.ndarray, point_idx: np.ndarray
     _, vecs = np.linalg.eigh(M)
     X = vecs[:, :, 0]
     return X / np.linalg.norm(X, axis=1, keepdims=True)
+
+
+def rotation_homography(K: np.ndarray, R_wc_i: np.ndarray, R_wc_j: np.ndarray) -> np.ndarray:
+    """Returns the 3x3 homography H = K R_j^T R_i K^-1 mapping pixels of frame i to frame j (pure rotation)."""
+    return K @ R_wc_j.T @ R_wc_i @ np.linalg.inv(K)

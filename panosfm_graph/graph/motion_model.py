@@ -98,15 +98,11 @@ def place_by_motion_model(pre: Preprocessed, tracks: Tracks, sol: Solution, conf
                                                       R, sol.camera.K, points_config)
         if pset is not None:
             batches.append(pset)
-    # a frame the points hold follows them rather than the spin model (a sway the model cannot follow would otherwise
-    # turn the frames held only up to the turn-for-shift ambiguity of distant points: docs/decisions.md#point-tracks)
-    scale = np.where(n_pts >= MIN_POINT_OBS, points_config.spin_sigma_scale, 1.0)
     # with points the line-fixed frames are anchors, not held: the points fix the frames' relative poses far better
     # than the lines (measured, office seed 2 swaying: held, the placed stretch 6-7 % of the diameter off and turned
     # 0.6-1.0 deg; the line-fixed frames held at their true poses instead, 0.4 %: docs/decisions.md#point-tracks)
     fixed_sigma = points_config.anchor_sigma_rel * diameter if batches else HOLD_SIGMA
-    graph, values = _spin_graph(sol, centers0, fixed, todo, stand, arm, M, R, j, alpha, n_knots, config, scale,
-                                fixed_sigma)
+    graph, values = _spin_graph(sol, centers0, fixed, todo, stand, arm, M, R, j, alpha, n_knots, config, fixed_sigma)
     for key, X in point_init.items():
         values.insert(key, X)
     if batches:
@@ -158,17 +154,15 @@ def _predict(stand: np.ndarray, arm: np.ndarray, M: np.ndarray, view_dirs: np.nd
 
 def _spin_graph(sol: Solution, centers0: np.ndarray, fixed: np.ndarray, todo: np.ndarray, stand: np.ndarray,
                 arm: np.ndarray, M: np.ndarray, R: np.ndarray, j: np.ndarray, alpha: np.ndarray, n_knots: int,
-                config: GraphConfig, scale: np.ndarray, fixed_sigma: float = HOLD_SIGMA
-                ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+                config: GraphConfig, fixed_sigma: float = HOLD_SIGMA) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
     """Returns the graph and initial values (``centers0``) of the spin model (module docstring): the line-fixed
-    centres held (within ``fixed_sigma``), the frames to place on the fitted model within its std times ``scale``
-    (F,)."""
+    centres held (within ``fixed_sigma``), the frames to place on the fitted model within its std."""
     model_sigma = config.spin_sigma_m
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     hold = gtsam.noiseModel.Isotropic.Sigma(3, fixed_sigma)
     vertical = model_sigma * config.spin_vertical_ratio
     fixed_noise = factors.spin_noise(model_sigma, vertical, config.spin_robust, config.robust_k)
-    free_noise = {v: factors.spin_noise(model_sigma * v, vertical * v) for v in np.unique(scale[todo])}
+    free_noise = factors.spin_noise(model_sigma, vertical)
     for k in range(n_knots):
         values.insert(stand_key(k), stand[k])
         if k:
@@ -182,7 +176,7 @@ def _spin_graph(sol: Solution, centers0: np.ndarray, fixed: np.ndarray, todo: np
             graph.add(gtsam.PriorFactorPoint3(center_key(i), sol.centers[i], hold))
         knots = (stand_key(j[i]), stand_key(min(j[i] + 1, n_knots - 1)))
         graph.add(factors.spin_prior_factor(center_key(i), knots, alpha[i], ARM_KEY, M, R[i][:, 2],
-                                            free_noise[scale[i]] if free else fixed_noise))
+                                            free_noise if free else fixed_noise))
     return graph, values
 
 
@@ -218,19 +212,15 @@ def _solve_rejecting_points(graph, values, batches: list, n_pts: np.ndarray, con
 def _add_rotations(graph, values, fixed: np.ndarray, todo: np.ndarray, R: np.ndarray, R_refined: np.ndarray,
                    config: PointsConfig) -> None:
     """Adds every frame's rotation as a variable: the line-fixed ones anchored (``points.anchor_sigma_deg``), each
-    frame to place tied to its
-    neighbours by the refined rotations' relative rotation (std ``points.relative_sigma_deg``) and to its refined
-    rotation (``points.rotation_sigma_deg``; 0: not)."""
+    frame to place tied to its neighbours by the refined rotations' relative rotation (std
+    ``points.relative_sigma_deg``)."""
     hold = gtsam.noiseModel.Isotropic.Sigma(3, np.deg2rad(config.anchor_sigma_deg))
     rel = gtsam.noiseModel.Isotropic.Sigma(3, np.deg2rad(config.relative_sigma_deg))
     for i in fixed:
         values.insert(rotation_key(int(i)), gtsam.Rot3(R[i]))
         graph.add(gtsam.PriorFactorRot3(rotation_key(int(i)), gtsam.Rot3(R[i]), hold))
-    own = gtsam.noiseModel.Isotropic.Sigma(3, np.deg2rad(config.rotation_sigma_deg or 1.0))
     for i in todo:
         values.insert(rotation_key(int(i)), gtsam.Rot3(R[i]))
-        if config.rotation_sigma_deg > 0:
-            graph.add(gtsam.PriorFactorRot3(rotation_key(int(i)), gtsam.Rot3(R_refined[i]), own))
     known = np.zeros(len(R), bool)
     known[np.concatenate([fixed, todo])] = True
     pairs = {(a, a + 1) for i in todo for a in (i - 1, i) if a >= 0 and a + 1 < len(R) and known[a] and known[a + 1]}
@@ -267,7 +257,7 @@ def _point_observations(centers: np.ndarray, points: PointTracks, frames: np.nda
     np.maximum.at(last, t, f)
     span = last - first  # frames a track spans: a track that closes the loop spans a turn, and is kept first
     obs = np.flatnonzero(ok_pt[t])
-    obs = obs[np.lexsort((-span[t[obs]], f[obs]))]  # by frame, longest tracks first
+    obs = obs[np.lexsort((-span[t[obs]], f[obs]))]  # by frame, the widest-spanning tracks first
     rank = np.arange(len(obs)) - np.searchsorted(f[obs], f[obs])
     obs = obs[rank < config.per_frame_graph]
     obs = obs[np.bincount(t[obs], minlength=len(ids))[t[obs]] >= 2]

@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 
 from ..config import Config, TrackingConfig
 from ..data import Segments, Tracks
-from ..geometry import turned_degrees
+from ..geometry import rotation_homography, turned_degrees
 from .fragments import interpretation_angle, interpretation_offset, join_tracks, merge_fragments  # noqa: F401
 
 log = logging.getLogger("panosfm.lines")
@@ -96,11 +96,6 @@ def loop_pairs(R_wc: np.ndarray, loop_angle_deg: float, base: np.ndarray | None 
     wide = _pairs_beyond(R_wc, loop_angle_deg, np.zeros((0, 2), np.int64) if base is None else base)
     turned = turned_degrees(R_wc)
     return wide[np.abs(turned[wide[:, 1]] - turned[wide[:, 0]]) >= min_turn_deg]
-
-
-def rotation_homography(K: np.ndarray, R_wc_i: np.ndarray, R_wc_j: np.ndarray) -> np.ndarray:
-    """Returns the 3x3 homography H = K R_j^T R_i K^-1 mapping pixels of frame i to frame j (pure rotation)."""
-    return K @ R_wc_j.T @ R_wc_i @ np.linalg.inv(K)
 
 
 def _warp(H: np.ndarray, endpoints: np.ndarray) -> np.ndarray:

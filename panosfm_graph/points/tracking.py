@@ -39,7 +39,7 @@ import numpy as np
 
 from ..config import PointsConfig
 from ..data import Capture, PointTracks
-from ..geometry import rotation_angle_deg, turned_degrees
+from ..geometry import rotation_angle_deg, rotation_homography, turned_degrees
 from ..progress import progress
 
 log = logging.getLogger("panosfm.points")
@@ -54,11 +54,6 @@ _LK_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
 
 def _grey(capture: Capture, i: int) -> np.ndarray:
     return cv2.cvtColor(capture.frame(i), cv2.COLOR_BGR2GRAY)
-
-
-def rotation_homography(K: np.ndarray, R_wc_i: np.ndarray, R_wc_j: np.ndarray) -> np.ndarray:
-    """Returns (3, 3) the infinite homography ``K R_j^T R_i K^-1``: pixels of frame i -> frame j for a pure turn."""
-    return K @ R_wc_j.T @ R_wc_i @ np.linalg.inv(K)
 
 
 def _apply(H: np.ndarray, p: np.ndarray) -> np.ndarray:
