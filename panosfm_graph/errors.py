@@ -19,3 +19,7 @@ class InputError(Exception):
 
 class TooFewLinesError(InputError):
     """The scene has too few (Manhattan) line segments to reconstruct."""
+
+
+class OnlyVerticalEdgesError(TooFewLinesError):
+    """The frames show vertical edges only (a bare room): no horizontal Manhattan direction, no line-fixed frame."""

@@ -87,7 +87,7 @@ class RunResult:
         by_arm = linear.get("scale") == "spin_arm" and arm is not None
         units = f"; units about metres: the spin's arm taken as {arm:g} m" if by_arm else ""
         ba = (s.get("residuals") or {}).get("bundle_adjust") or {}
-        if s.get("metric") or "scale_from_arm" in ba:  # the scale text says how it was set
+        if s.get("metric") or "scale_from_arm" in ba or (ba.get("motion_model") or {}).get("anchor_free"):
             lines.append(f"  scale       {s.get('scale', 'metric')}")
         elif linear_cfg.get("camera_height_m") is not None:
             lines.append(f"  scale       arbitrary (no floor line verified for --camera-height{units})")
@@ -237,7 +237,8 @@ def _stages(capture: Capture, config: Config, cache: StageCache, result: RunResu
     if not done("detect") and (not capture.focal_given or config.focal.estimate):
         capture = _estimate_focal(capture, segments, config, timings, result)
     if not done("detect"):
-        key = stable_hash(key, code("preprocess"), config.manhattan, config.rotation, capture.camera.params)
+        key = stable_hash(key, code("preprocess"), config.manhattan, config.rotation, capture.camera.params,
+                          config.points.enabled, config.graph.motion_model)  # vertical edges only: points or stop
         pre = _cached(cache, "preprocess", key, Preprocessed,
                       lambda: _preprocess(capture, segments, config), timings, resumed)
         result.preprocessed = pre
@@ -383,9 +384,13 @@ def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
     from .graph import (bundle_adjust, bundle_adjust_incremental, place_by_motion_model, solve_at_final_scale,
                         steady_or_hand_held)
 
-    if not result.linear.registered.any():  # nothing to adjust: the result says so (0 frames registered)
+    if not result.linear.registered.any():  # nothing to adjust: the point tracks alone may place the frames
         log.warning("the linear solve registered no frame: bundle adjustment skipped")
-        return result.linear
+        if points is None or not (config.points.enabled and config.graph.motion_model):
+            return result.linear
+        result.points = points()
+        return place_by_motion_model(pre, result.tracks, result.linear, config.graph, points=result.points,
+                                     points_config=config.points)
     if config.linear.zero_translation:
         # the paper's baseline keeps every camera centre at the origin; BA would move them
         log.info("zero-translation baseline: bundle adjustment skipped, the linear solve is the result")
@@ -576,6 +581,9 @@ def _scale_text(camera_height_m: float, n_floor: int, residuals: dict) -> str:
 def _arbitrary_scale_text(sol: Solution | None, config: Config) -> str:
     """Returns ``arbitrary``, with why where the bundle adjustment took the scale from the spin's arm."""
     res = sol.residuals if sol is not None and isinstance(sol.residuals, dict) else {}
+    if (res.get("motion_model") or {}).get("anchor_free"):
+        return (f"arbitrary (units about metres: no line fixes a frame, the point tracks place them with the spin's "
+                f"arm taken as {config.graph.metric_arm_fallback_m:g} m forward)")
     if "scale_from_arm" not in res:
         return "arbitrary"
     lo, hi = config.graph.metric_arm_range_m

@@ -168,3 +168,83 @@ def test_point_tracks_place_a_long_stretch_and_correct_its_rotation_drift():
     # without the points the same stretch is mostly left out (the spin model alone is too uncertain)
     alone = place_by_motion_model(pre, tracks, sol, GraphConfig())
     assert alone.residuals["motion_model"]["placed"] < 0.5 * out.residuals["motion_model"]["placed"]
+
+
+def test_without_line_fixed_frames_the_point_tracks_alone_place_the_spin():
+    """No frame fixed by lines (a bare room, issue #40): the point tracks place every frame in a gauge of their
+    own (a stand point, the arm's length, one rotation). After the similarity alignment the centres are within
+    the accuracy bar, the rotation drift the IMU had is corrected, and the gauge-free std is honest."""
+    from scipy.spatial.transform import Rotation
+
+    from panosfm_graph.evaluate import umeyama
+    from panosfm_graph.geometry import rotation_angle_deg
+
+    R, c = _spin(0.05)
+    none = np.zeros(F, bool)
+    drift = Rotation.from_rotvec(np.outer(np.arange(F) / F, [0, 0, np.deg2rad(1.5)]))
+    R_drift = np.einsum("nij,njk->nik", drift.as_matrix(), R)
+    pre, tracks, sol = _inputs(R, c, none)
+    pre.R_wc = R_drift
+    out = place_by_motion_model(pre, tracks, sol, GraphConfig(), points=_point_tracks(R, c))
+    assert out.residuals["motion_model"]["anchor_free"] and out.registered.all()
+    assert set(out.residuals["frame_source"]) == {"points"}
+    s, A, t = umeyama(out.centers, c)
+    diameter = 2 * np.hypot(*np.ptp(c[:, :2], axis=0)) / np.sqrt(2)
+    err = np.linalg.norm(s * out.centers @ A.T + t - c, axis=1) / diameter
+    assert err.max() < 0.02, err.max()
+    sig = np.array(out.residuals["frame_sigma_rel"])
+    assert np.median(err / sig) < 2.0 and np.percentile(err / sig, 90) < 4.0, (np.median(err / sig))
+    rot_in = rotation_angle_deg(R_drift, R)
+    R_al = np.einsum("ij,njk->nik", A, out.R_wc)
+    rot_out = rotation_angle_deg(R_al, R)
+    assert np.median(rot_out) < 0.3 * np.median(rot_in), (np.median(rot_out), np.median(rot_in))
+    # without point tracks nothing is placed: the input comes back as it was
+    alone = place_by_motion_model(pre, tracks, sol, GraphConfig())
+    assert not alone.registered.any() and "motion_model" not in alone.residuals
+
+
+def test_gauge_free_covariance_removes_the_similarity_and_keeps_the_rest():
+    """A covariance made of the similarity's motions alone projects to zero; independent noise on the centres
+    keeps its size (N large: 7 of 3N directions removed)."""
+    from panosfm_graph.graph.motion_model import gauge_free_covariance
+
+    rng = np.random.default_rng(0)
+    c = rng.normal(size=(40, 3)) * [1.0, 1.0, 0.2]
+    d = c - c.mean(axis=0)
+    J = np.column_stack([np.tile(np.eye(3), (40, 1))] + [np.cross(np.eye(3)[a], d).ravel() for a in range(3)]
+                        + [d.ravel()])
+    G = J @ np.diag([1.0, 2.0, 3.0, 0.1, 0.2, 0.3, 0.5]) @ J.T
+    assert np.abs(gauge_free_covariance(G, c)).max() < 1e-9
+    C = gauge_free_covariance(0.01 * np.eye(120), c)
+    assert 0.9 * 0.01 * 113 < np.trace(C) < 1.001 * 0.01 * 113  # trace: 3N - 7 directions of 0.01 each
+
+
+def test_lines_at_poses_triangulates_the_lines_of_placed_frames():
+    """Vertical edges of a room seen from a swaying spin: each track's line, triangulated at the true poses from
+    its segments' interpretation planes (``graph.readout.lines_at_poses``), lies where the edge is, with its
+    seen extent; a track whose segments disagree (another edge in one of its frames) is left out."""
+    from panosfm_graph.geometry import project
+    from panosfm_graph.graph.readout import lines_at_poses
+
+    R, c = _spin(0.05)
+    K = np.array([[768.0, 0, 479.5], [0, 768.0, 269.5], [0, 0, 1]])
+    edges = np.array([[2.5, 2.0], [-2.5, 2.0], [-2.5, -2.0], [2.5, -2.0], [0.8, 2.0], [1.6, 2.0]])
+    frame, ends, track = [], [], []
+    for t, (x, y) in enumerate(edges):
+        for i in range(F):
+            p, d = project(K, R[i], c[i], np.array([[x, y, 0.3], [x, y, 1.1]]))
+            if np.all(d > 0) and np.all((p[:, 0] > 0) & (p[:, 0] < 960)):
+                frame.append(i), ends.append(p.ravel()), track.append(t)
+    frame, ends, track = np.array(frame), np.array(ends), np.array(track)
+    bad = np.flatnonzero(track == 5)[::2]  # edge 5: every other segment taken from 0.3 m further along the wall
+    ends[bad, 0::2] += 768.0 * 0.3 / 3.0
+    pre = SimpleNamespace(segments=SimpleNamespace(frame=frame, endpoints=ends), manhattan=SimpleNamespace(
+        directions=np.eye(3)))
+    tracks = SimpleNamespace(track_of=track, axis=np.full(len(edges), 2, np.int8), n=len(edges))
+    lines = LineModel(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int8), np.zeros((0, 2)), np.zeros(0, bool))
+    cam = Camera("PINHOLE", 960, 540, np.array([768.0, 768.0, 479.5, 269.5]))
+    sol = Solution(R_wc=R, centers=c, registered=np.ones(F, bool), lines=lines, camera=cam, metric=True, residuals={})
+    out = lines_at_poses(pre, tracks, sol)
+    np.testing.assert_array_equal(out.valid, [True] * 5 + [False])
+    np.testing.assert_allclose(out.taylor[:5, :2], edges[:5], atol=1e-6)
+    np.testing.assert_allclose(out.endpoints[:5, [2, 5]], np.tile([0.3, 1.1], (5, 1)), atol=1e-6)

@@ -46,6 +46,7 @@ from ..data import PointTracks, Preprocessed, Solution, Tracks
 from ..geometry import triangulate_dlt, turned_degrees
 from .factor_graph import reprojection_kernel
 from .lm import levenberg_marquardt
+from .readout import lines_at_poses
 from .problem import ARM_KEY, center_key, line_key, point_key, rotation_key, stand_key
 from .spin import fit_spin
 
@@ -74,14 +75,26 @@ def place_by_motion_model(pre: Preprocessed, tracks: Tracks, sol: Solution, conf
     res["frame_source"], res["frame_sigma_rel"] = source, [None] * F
     fixed = np.flatnonzero(sol.registered)
     todo = np.flatnonzero(~sol.registered & np.all(np.isfinite(pre.R_wc), axis=(1, 2)))
-    if not config.motion_model or not len(todo) or len(fixed) < MIN_FIXED:
+    has_points = points is not None and len(points.frame) > 0 and points_config.enabled
+    # too few line-fixed frames: with point tracks every frame is placed by them alone (anchor_free)
+    anchor_free = len(fixed) < MIN_FIXED and has_points
+    if not config.motion_model or not len(todo) or (len(fixed) < MIN_FIXED and not anchor_free):
         return dataclasses.replace(sol, residuals=res)
     t0 = time.perf_counter()
     M = pre.manhattan.directions
+    given_sol = sol
+    if anchor_free:
+        fixed = np.zeros(0, np.int64)
+        todo = np.flatnonzero(np.all(np.isfinite(pre.R_wc), axis=(1, 2)))
+        sol = dataclasses.replace(sol, registered=np.zeros(F, bool))
+        source = [None] * F
     R = np.where(sol.registered[:, None, None], sol.R_wc, pre.R_wc)
     j, alpha, n_knots = factors.spin_knots(turned_degrees(R), config.spin_knot_deg)
-    stand, arm, _ = fit_spin(sol.centers[fixed], R[fixed][:, :, 2], M, j[fixed], alpha[fixed], n_knots,
-                               walk_weight=config.spin_sigma_m / config.spin_walk_sigma_m)
+    if anchor_free:  # the scale's gauge: the arm's length (not metric), the stand point at the origin
+        stand, arm = np.zeros((n_knots, 3)), np.array([config.metric_arm_fallback_m, 0.0])
+    else:
+        stand, arm, _ = fit_spin(sol.centers[fixed], R[fixed][:, :, 2], M, j[fixed], alpha[fixed], n_knots,
+                                 walk_weight=config.spin_sigma_m / config.spin_walk_sigma_m)
     diameter = 2.0 * float(np.hypot(*arm))
     if not np.isfinite(diameter) or diameter <= 0:
         return dataclasses.replace(sol, residuals=res)
@@ -93,11 +106,13 @@ def place_by_motion_model(pre: Preprocessed, tracks: Tracks, sol: Solution, conf
     centers0 = sol.centers.copy()
     centers0[todo] = _predict(stand, arm, M, R[todo][:, :, 2], j[todo], alpha[todo])
     n_pts, batches, point_init = np.zeros(F, np.int64), [], {}
-    if points is not None and len(points.frame):
+    if has_points:
         pset, n_pts, point_init = _point_observations(centers0, points, np.concatenate([fixed, todo]), sol.registered,
                                                       R, sol.camera.K, points_config)
         if pset is not None:
             batches.append(pset)
+    if anchor_free and not batches:
+        return dataclasses.replace(given_sol, residuals=res)
     # with points the line-fixed frames are anchors, not held: the points fix the frames' relative poses far better
     # than the lines (measured, office seed 2 swaying: held, the placed stretch 6-7 % of the diameter off and turned
     # 0.6-1.0 deg; the line-fixed frames held at their true poses instead, 0.4 %: docs/decisions.md#point-tracks)
@@ -107,24 +122,27 @@ def place_by_motion_model(pre: Preprocessed, tracks: Tracks, sol: Solution, conf
         values.insert(key, X)
     if batches:
         _add_rotations(graph, values, fixed, todo, R, pre.R_wc, points_config)
+    if anchor_free:
+        _add_gauge(graph, todo[0], R, config.metric_arm_fallback_m, points_config)
     hold = gtsam.noiseModel.Isotropic.Sigma(3, HOLD_SIGMA)
     free_rot = len(batches) > 0
-    n_obs = _add_line_observations(graph, values, pre, tracks, sol, todo, R, config, hold, free_rot)
+    n_obs = 0 if anchor_free else _add_line_observations(graph, values, pre, tracks, sol, todo, R, config, hold,
+                                                         free_rot)
     try:
         result, batches, n_pts, dropped = _solve_rejecting_points(graph, values, batches, n_pts, points_config)
-        gfg = graph.linearize(result)
-        for b in batches:
-            gfg.push_back(b.linearize(result))
-        marginals = gtsam.Marginals(gfg, result)
-        sig = np.array([np.sqrt(np.linalg.eigvalsh(marginals.marginalCovariance(center_key(i)))[-1]) for i in todo])
+        sig = _largest_center_std(graph, batches, result, todo, diameter, gauge_free=anchor_free)
     except RuntimeError as e:  # an indeterminate system: leave the frames out rather than guess
-        log.warning("motion model: not solved (%s); frames left without a pose", str(e).splitlines()[0])
-        res["motion_model"] = {"placed": 0, "error": str(e).splitlines()[0]}
-        return dataclasses.replace(sol, residuals=res)
-    # a frame the points place inherits the anchors' own error, which the anchors share rather than average out
-    anchored = np.where(n_pts[todo] >= MIN_POINT_OBS, points_config.anchor_sigma_rel * diameter, 0.0)
+        log.warning("motion model: not solved (%s); frames left without a pose", str(e).strip().splitlines()[0])
+        res["motion_model"] = {"placed": 0, "error": str(e).strip().splitlines()[0]}
+        return dataclasses.replace(given_sol, residuals=res)
+    if anchor_free:  # the solved arm sets the spin's diameter; no anchor's error to inherit
+        diameter = 2.0 * float(np.hypot(*result.atVector(ARM_KEY)))
+        anchored = np.zeros(len(todo))
+    else:  # a frame the points place inherits the anchors' own error, which the anchors share rather than average out
+        anchored = np.where(n_pts[todo] >= MIN_POINT_OBS, points_config.anchor_sigma_rel * diameter, 0.0)
     rel = np.hypot(sig, anchored) / diameter
     ok = rel <= config.motion_max_sigma_rel
+    res["frame_source"] = source
     centers, registered, R_out = sol.centers.copy(), sol.registered.copy(), sol.R_wc.copy()
     for i, s_rel, good in zip(todo, rel, ok):
         res["frame_sigma_rel"][i] = float(s_rel)
@@ -134,13 +152,73 @@ def place_by_motion_model(pre: Preprocessed, tracks: Tracks, sol: Solution, conf
             registered[i] = True
             source[i] = "points" if n_pts[i] >= MIN_POINT_OBS else "motion model"
     res["motion_model"] = {"placed": int(ok.sum()), "left_out": int((~ok).sum()), "line_fixed": int(len(fixed)),
-                           "model_sigma_rel": model_sigma / diameter,
+                           "anchor_free": anchor_free, "model_sigma_rel": model_sigma / diameter,
                            "max_sigma_rel": config.motion_max_sigma_rel, "observations": n_obs,
                            "point_observations": int(n_pts.sum()), "point_tracks_rejected": dropped,
                            "sigma_rel_median": float(np.median(rel)), "seconds": round(time.perf_counter() - t0, 3)}
-    log.info("motion model: %d of %d frames placed (std <= %.1f %% of the spin's diameter), %d left out",
-             int(ok.sum()), len(todo), 100 * config.motion_max_sigma_rel, int((~ok).sum()))
-    return dataclasses.replace(sol, centers=centers, registered=registered, R_wc=R_out, residuals=res)
+    if anchor_free:
+        res["spin_arm_m"] = float(np.hypot(*result.atVector(ARM_KEY)))
+    log.info("motion model: %d of %d frames placed (std <= %.1f %% of the spin's diameter), %d left out%s",
+             int(ok.sum()), len(todo), 100 * config.motion_max_sigma_rel, int((~ok).sum()),
+             " (by point tracks alone: too few line-fixed frames)" if anchor_free else "")
+    out = dataclasses.replace(sol, centers=centers, registered=registered, R_wc=R_out, residuals=res,
+                              metric=sol.metric and not anchor_free)
+    if anchor_free:  # no line was held: the tracks the placed frames see, triangulated at their poses
+        out = dataclasses.replace(out, lines=lines_at_poses(pre, tracks, out))
+        res["lines_at_poses"] = int(out.lines.valid.sum())
+    return out
+
+
+def _largest_center_std(graph, batches: list, result: gtsam.Values, todo: np.ndarray, diameter: float,
+                        gauge_free: bool = False) -> np.ndarray:
+    """Returns (len(todo),) the largest std of each frame's centre from the graph's marginals at ``result``.
+
+    A point seen along nearly one ray (its frames a few mm apart) leaves its depth free, which makes the
+    system indeterminate for the marginals; each point gets a weak prior (100 diameters) at its solved value,
+    which changes no centre's std measurably. ``gauge_free``: the std of the centre relative to the others
+    (:func:`gauge_free_covariance`), not to the graph's gauge priors."""
+    gfg = graph.linearize(result)
+    for b in batches:
+        gfg.push_back(b.linearize(result))
+        weak = gtsam.noiseModel.Isotropic.Sigma(3, 100.0 * diameter)
+        for key in set(b.point_keys):
+            gfg.push_back(gtsam.PriorFactorPoint3(key, result.atPoint3(key), weak).linearize(result))
+    marginals = gtsam.Marginals(gfg, result)
+    if gauge_free:
+        keys = gtsam.KeyVector([center_key(int(i)) for i in todo])
+        C = gauge_free_covariance(marginals.jointMarginalCovariance(keys).fullMatrix(),
+                                  np.array([result.atPoint3(center_key(int(i))) for i in todo]))
+        blocks = np.stack([C[3 * k:3 * k + 3, 3 * k:3 * k + 3] for k in range(len(todo))])
+        return np.sqrt(np.maximum(np.linalg.eigvalsh(blocks)[:, -1], 0.0))
+    return np.array([np.sqrt(np.linalg.eigvalsh(marginals.marginalCovariance(center_key(i)))[-1]) for i in todo])
+
+
+def gauge_free_covariance(C: np.ndarray, centers: np.ndarray) -> np.ndarray:
+    """Returns the (3N, 3N) covariance ``C`` of the centres (N, 3) with the similarity gauge projected out.
+
+    A graph without line-fixed frames is held by gauge priors (a stand point, the arm, one rotation); a centre's
+    marginal then grows with its distance along the chain from them, though the evaluation (and any user) aligns
+    the whole trajectory first. The centres' deviations from the best similarity (translation, rotation, scale,
+    linearised about ``centers``) are P c with P = I - J J^+, so their covariance is P C P^T."""
+    d = centers - centers.mean(axis=0)
+    n = len(d)
+    J = np.zeros((3 * n, 7))
+    J[:, :3] = np.tile(np.eye(3), (n, 1))
+    for a in range(3):  # an infinitesimal rotation about axis a moves c by e_a x c
+        J[:, 3 + a] = np.cross(np.eye(3)[a], d).ravel()
+    J[:, 6] = d.ravel()
+    P = np.eye(3 * n) - J @ np.linalg.pinv(J)
+    return P @ C @ P.T
+
+
+def _add_gauge(graph, first: int, R: np.ndarray, arm_m: float, config: PointsConfig) -> None:
+    """Adds the gauge of a graph without line-fixed frames: the first stand-point knot at the origin, the arm's
+    forward length ``arm_m`` (the scale; not metric) and the first frame's rotation (the heading about gravity)."""
+    graph.add(gtsam.PriorFactorPoint3(stand_key(0), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, HOLD_SIGMA)))
+    graph.add(gtsam.PriorFactorVector(ARM_KEY, np.array([arm_m, 0.0]),
+                                      gtsam.noiseModel.Diagonal.Sigmas(np.array([HOLD_SIGMA, 10.0 * arm_m]))))
+    graph.add(gtsam.PriorFactorRot3(rotation_key(int(first)), gtsam.Rot3(R[first]),
+                                    gtsam.noiseModel.Isotropic.Sigma(3, np.deg2rad(config.anchor_sigma_deg))))
 
 
 def _predict(stand: np.ndarray, arm: np.ndarray, M: np.ndarray, view_dirs: np.ndarray, j: np.ndarray,

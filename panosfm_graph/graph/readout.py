@@ -97,3 +97,60 @@ def _reprojection_rms(pre: Preprocessed, prob: _Problem, taylor: np.ndarray, R_w
     r = factors.reprojection_terms(pre.segments.endpoints[prob.obs_seg].astype(np.float64), prob.directions[t],
                                    taylor[t], centers[f], R_wc[f], K)
     return float(np.sqrt(np.mean(np.sum(r**2, axis=1))))
+
+
+def lines_at_poses(pre: Preprocessed, tracks: Tracks, sol: Solution, only_missing: bool = True, min_obs: int = 3,
+                   min_spread_deg: float = 1.0, max_rms_px: float = 2.0) -> LineModel:
+    """Returns the solution's lines with the tracks it has no line for triangulated at its registered poses
+    (our addition, issue #40: frames the point tracks placed see lines the adjustment never held).
+
+    A Manhattan line of direction ``d`` is ``lambda = mu_1 e_1 + mu_2 e_2`` (Taylor point, paper §3.4, with
+    e_1, e_2 the other two Manhattan directions); each observation in frame i, the interpretation plane of normal
+    ``n`` through the centre ``c_i``, gives ``n . lambda = n . c_i``: a 2 x 2 least squares per track. Kept where
+    at least ``min_obs`` registered frames see it, their planes spread by ``min_spread_deg`` (the RMS angle about
+    the mean normal) and the line lies within ``max_rms_px`` (RMS) of their planes; extents as
+    :func:`line_extents`. ``only_missing`` False: every track is triangulated again.
+    """
+    lines, seg, M = sol.lines, pre.segments, pre.manhattan.directions
+    T = tracks.n
+    valid = lines.valid if len(lines.valid) == T else np.zeros(T, bool)
+    taylor = lines.taylor if len(lines.taylor) == T else np.full((T, 3), np.nan)
+    extent = lines.extent if len(lines.extent) == T else np.full((T, 2), np.nan)
+    tr = tracks.track_of
+    s = np.flatnonzero((tr >= 0) & sol.registered[seg.frame])
+    if only_missing:
+        s = s[~valid[tr[s]]]
+    t, f = tr[s], seg.frame[s]
+    axis = np.clip(tracks.axis, 0, 2)
+    other = np.array([[1, 2], [0, 2], [0, 1]])[axis]  # (T, 2) the two Manhattan axes orthogonal to each line
+    K = sol.camera.K
+    from ..geometry import interpretation_normals
+
+    n = np.einsum("sij,sj->si", sol.R_wc[f], interpretation_normals(K, seg.endpoints[s].astype(np.float64)))
+    a = np.einsum("si,sji->sj", n, M[other[t]])  # (S, 2): n . e_1, n . e_2
+    b = np.einsum("si,si->s", n, sol.centers[f])
+    A = np.zeros((T, 2, 2))
+    r = np.zeros((T, 2))
+    np.add.at(A, t, a[:, :, None] * a[:, None, :])
+    np.add.at(r, t, a * b[:, None])
+    cnt = np.bincount(t, minlength=T)
+    lam_min = np.linalg.eigvalsh(A + 1e-15 * np.eye(2))[:, 0]
+    spread = np.sqrt(np.maximum(lam_min, 0.0) / np.maximum(cnt, 1))  # ~ sin of the planes' spread about the line
+    ok = (cnt >= min_obs) & (spread > np.sin(np.radians(min_spread_deg)))
+    mu = np.zeros((T, 2))
+    mu[ok] = np.linalg.solve(A[ok], r[ok][:, :, None])[:, :, 0]
+    lam = np.einsum("tk,tki->ti", mu, M[other])
+    depth = np.linalg.norm((lam[t] - sol.centers[f]) - np.einsum("si,si->s", lam[t] - sol.centers[f],
+                                                                  M[axis[t]])[:, None] * M[axis[t]], axis=1)
+    px = K[0, 0] * (np.einsum("sk,sk->s", a, mu[t]) - b) / np.maximum(depth, 1e-9)
+    rms = np.sqrt(np.bincount(t, px ** 2, minlength=T) / np.maximum(cnt, 1))
+    ok &= rms <= max_rms_px
+    keep = ok[t]
+    ext = line_extents(lam[t[keep]], M[axis[t[keep]]], seg.endpoints[s[keep]].astype(np.float64),
+                       sol.R_wc[f[keep]], sol.centers[f[keep]], K)
+    lo_hi, has = track_extents(ext, t[keep], T)
+    ok &= has
+    new_taylor, new_extent, new_valid = taylor.copy(), extent.copy(), valid.copy()
+    new_taylor[ok], new_extent[ok], new_valid[ok] = lam[ok], lo_hi[ok], True
+    return LineModel(taylor=new_taylor, direction=M[axis], axis=tracks.axis.copy(), extent=new_extent,
+                     valid=new_valid)

@@ -12,7 +12,8 @@ import logging
 import numpy as np
 
 from ..config import Config
-from ..data import Capture, ManhattanFrame, Preprocessed, Segments, Tracks
+from ..data import UNLABELLED, Capture, ManhattanFrame, Preprocessed, Segments, Tracks
+from ..errors import OnlyVerticalEdgesError
 from .detect import detect_segments
 from .manhattan import check_enough_manhattan, label_segments, manhattan_frame
 from .rotations import heading_drift, refine_rotations, rotate_heading
@@ -22,11 +23,42 @@ log = logging.getLogger("panosfm.lines")
 
 __all__ = [
     "detect_segments", "manhattan_frame", "label_segments", "refine_rotations",
-    "refine_manhattan_and_rotations", "refine_warm", "preprocess", "track_lines",
+    "refine_manhattan_and_rotations", "refine_warm", "preprocess", "track_lines", "vertical_only",
 ]
 
 
 def refine_manhattan_and_rotations(segments: Segments, capture: Capture, config: Config) -> Preprocessed:
+    """Returns the Manhattan frame, segment labels and refined rotations (paper §3.1, supplement §1-2).
+
+    Frames that show vertical edges only (a bare room) give :func:`vertical_only` where point tracks may place
+    the frames (``points.enabled`` and ``graph.motion_model``); otherwise :class:`OnlyVerticalEdgesError`.
+    """
+    try:
+        return _refine_manhattan_and_rotations(segments, capture, config)
+    except OnlyVerticalEdgesError as e:
+        if not (config.points.enabled and config.graph.motion_model):
+            raise
+        log.warning("%s; the IMU's rotations are kept and the point tracks place the frames", e)
+        return vertical_only(segments, capture, config)
+
+
+def vertical_only(segments: Segments, capture: Capture, config: Config) -> Preprocessed:
+    """Returns the preprocessing of frames that show vertical edges only (our addition; issue #40).
+
+    No horizontal Manhattan direction is seen, so the Manhattan frame is the IMU's world axes (the vertical is
+    gravity, the heading the IMU's), the rotations are the IMU's (the vertical edges alone leave them as they are,
+    measured on a bare room: 0.742 deg median before and after) and only the vertical segments are labelled. No
+    frame is fixed by lines; :func:`panosfm_graph.graph.place_by_motion_model` places them by point tracks.
+    """
+    R_imu = np.asarray(capture.R_wc_imu, dtype=np.float64)
+    mf = ManhattanFrame(directions=np.eye(3))
+    labels = label_segments(segments, capture.camera.K, R_imu, mf, config.manhattan)
+    labels = np.where(labels == 2, 2, UNLABELLED).astype(np.int8)
+    return Preprocessed(segments=segments, manhattan=mf, labels=labels, R_wc=np.ascontiguousarray(R_imu),
+                        R_wc_imu=R_imu)
+
+
+def _refine_manhattan_and_rotations(segments: Segments, capture: Capture, config: Config) -> Preprocessed:
     """Returns the Manhattan frame, segment labels and refined rotations (paper §3.1, supplement §1-2).
 
     Starting from the IMU rotations, repeats ``config.manhattan.iterations``

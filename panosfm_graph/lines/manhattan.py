@@ -8,7 +8,7 @@ import numpy as np
 
 from ..config import Config, ManhattanConfig
 from ..data import ManhattanFrame, Segments, UNLABELLED
-from ..errors import TooFewLinesError
+from ..errors import OnlyVerticalEdgesError, TooFewLinesError
 from ..geometry import interpretation_normals
 
 log = logging.getLogger("panosfm.lines")
@@ -209,7 +209,8 @@ def check_enough_manhattan(labels: np.ndarray, config: Config | ManhattanConfig)
         why = ("only vertical edges: the floor's and ceiling's edges and every horizontal edge are out of view (a bare "
                "room; tilt the phone to see where walls meet the floor)" if counts[2] >= cfg.min_segments else
                "the frames may show a textureless close-up or a non-Manhattan scene")
-        raise TooFewLinesError(
+        error = OnlyVerticalEdgesError if counts[2] >= cfg.min_segments else TooFewLinesError
+        raise error(
             f"too few Manhattan line segments ({counts[0]} x, {counts[1]} y, {counts[2]} vertical; "
             f"at least {cfg.min_segments} on two or more axes needed): {why}"
         )
