@@ -370,6 +370,11 @@ class GraphConfig:
     # docs/decisions.md#motion-model-placement
     motion_model: bool = True
     motion_max_sigma_rel: float = 0.025
+    # with point tracks the spin is also placed by the points alone (the line-fixed frames' rotations as anchors);
+    # where the line-fixed centres lie further than this share of the diameter (median, after a scale and a shift)
+    # from the points', the points' poses are kept and the lines triangulated again at them (0: off); see
+    # docs/decisions.md#lines-or-points
+    motion_lines_points_max_rel: float = 0.01
     # metric scale: the floor moves down to the deepest horizontal line seen in at least this many frames (0: off);
     # see docs/decisions.md#floor-below-lines
     floor_below_lines_min_obs: int = 3

@@ -35,7 +35,7 @@ from scipy.spatial.distance import pdist
 from .data import Camera, Capture
 from .errors import InputError
 from .export import poses_for_frames, read_colmap_text, read_lines_ply
-from .geometry import rotation_angle_deg  # noqa: F401  (re-exported: part of the evaluation API)
+from .geometry import rotation_angle_deg, umeyama  # noqa: F401  (re-exported: part of the evaluation API)
 from .geometry import triangulate_dlt
 
 log = logging.getLogger(__name__)
@@ -50,22 +50,6 @@ ZERO_BASELINE_M = 1e-6  # true centres closer than this: a zero-baseline capture
 # --------------------------------------------------------------------------------------
 # Alignment
 # --------------------------------------------------------------------------------------
-
-
-def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
-    """Returns (s, R, t) minimising sum ||dst - (s R src + t)||^2 (Umeyama 1991), for (N, 3) point sets."""
-    src = np.asarray(src, dtype=np.float64)
-    dst = np.asarray(dst, dtype=np.float64)
-    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
-    xs, xd = src - mu_s, dst - mu_d
-    U, D, Vt = np.linalg.svd(xd.T @ xs / len(src))
-    S = np.diag([1.0, 1.0, np.sign(np.linalg.det(U) * np.linalg.det(Vt)) or 1.0])
-    R = U @ S @ Vt
-    var_s = np.mean(np.sum(xs * xs, axis=1))
-    s = float(np.trace(np.diag(D) @ S) / var_s) if with_scale and var_s > 0 else 1.0
-    if with_scale and var_s <= 0:
-        s = 0.0
-    return s, R, mu_d - s * R @ mu_s
 
 
 def rotation_alignment(R_est: np.ndarray, R_gt: np.ndarray) -> np.ndarray:

@@ -135,3 +135,19 @@ def triangulate_dlt(R_wc: np.ndarray, centers: np.ndarray, point_idx: np.ndarray
 def rotation_homography(K: np.ndarray, R_wc_i: np.ndarray, R_wc_j: np.ndarray) -> np.ndarray:
     """Returns the 3x3 homography H = K R_j^T R_i K^-1 mapping pixels of frame i to frame j (pure rotation)."""
     return K @ R_wc_j.T @ R_wc_i @ np.linalg.inv(K)
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
+    """Returns (s, R, t) minimising sum ||dst - (s R src + t)||^2 (Umeyama 1991), for (N, 3) point sets."""
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
+    xs, xd = src - mu_s, dst - mu_d
+    U, D, Vt = np.linalg.svd(xd.T @ xs / len(src))
+    S = np.diag([1.0, 1.0, np.sign(np.linalg.det(U) * np.linalg.det(Vt)) or 1.0])
+    R = U @ S @ Vt
+    var_s = np.mean(np.sum(xs * xs, axis=1))
+    s = float(np.trace(np.diag(D) @ S) / var_s) if with_scale and var_s > 0 else 1.0
+    if with_scale and var_s <= 0:
+        s = 0.0
+    return s, R, mu_d - s * R @ mu_s

@@ -74,6 +74,10 @@ class RunResult:
                          f"({100.0 * fr.get('registered_ratio', 0.0):.1f} %){how}")
             for why, count in sorted(fr.get("unregistered_reasons", {}).items(), key=lambda kv: -kv[1]):
                 lines.append(f"              {count} not: {why}")
+            mm = ((s.get("residuals") or {}).get("bundle_adjust") or {}).get("motion_model") or {}
+            if mm.get("lines_replaced"):
+                lines.append(f"              the line-fixed frames lay {100 * mm['lines_vs_points_rel']:.1f} % of the "
+                             "spin's diameter from the point tracks' poses: the points' poses kept, lines retriangulated")
         if "segments" in s:
             lines.append(f"  segments    {s['segments']['total']} ({s['segments']['manhattan']} Manhattan), "
                          f"{s.get('tracks', 0)} tracks, {s.get('lines', 0)} 3D lines")
