@@ -158,7 +158,9 @@ class PointsConfig:
     min_distance_px: float = 12.0  # between corners
     min_eigen_ratio: float = 0.3  # a corner's smaller over larger structure-tensor eigenvalue (below: an edge)
     fb_px: float = 0.5  # forward-backward flow check
-    max_parallax_px: float = 20.0  # a step departs from the rotation's prediction by at most this
+    max_parallax_px: float = 20.0  # a step departs from the rotation's prediction by at most this ...
+    # ... where the spin's median step turns this much or less (240+ frames per turn); larger steps in proportion
+    parallax_ref_step_deg: float = 1.5
     min_frames: int = 4  # shorter tracks are dropped
     loop_min_turn_deg: float = 270.0  # a frame this far into the turn past an earlier one may close the loop ...
     loop_max_deg: float = 15.0  # ... with the earlier frame closest in rotation, if within this

@@ -77,3 +77,22 @@ def test_coarse_shift_finds_a_loop_drift_lk_alone_misses():
     np.testing.assert_allclose(_coarse_shift(g_i, g_j, np.eye(3)), [-120, 20], atol=4)
     flat = np.full((540, 960), 100, np.uint8)
     np.testing.assert_array_equal(_coarse_shift(flat, flat, np.eye(3)), [0, 0])
+
+
+def test_a_fast_spin_is_tracked_in_every_frame(tmp_path):
+    """60 frames per turn at 960x540 (6-degree steps): on a 0.3 m arm a wall 1 m away moves 24 px off the rotation's
+    prediction per step, past the 20 px a 300-frame spin allows; the allowance grows with the spin's step
+    (``points.parallax_ref_step_deg``), so every frame keeps its tracks (measured on this capture: 11 frames had
+    none before) and they stay pure."""
+    from panosfm_graph.capture import load_capture
+
+    cap = load_capture(synthesize(tmp_path / "fast", "bedroom", 60, (960, 540), seed=21, gt_maps=False))
+    gt, K = cap.ground_truth, cap.camera.K
+    pts = track_points(cap, cap.R_wc_imu, PointsConfig())
+    per_frame = np.bincount(pts.frame, minlength=cap.n_frames)
+    assert per_frame.min() >= 6, np.flatnonzero(per_frame < 6)
+    f, t, uv = pts.frame, pts.track, pts.xy.astype(np.float64)
+    Xh = triangulate_dlt(gt.R_wc, gt.centers, t, f, (uv - K[:2, 2]) / np.diag(K)[:2], pts.n)
+    proj, _ = project_points(gt.R_wc[f], gt.centers[f], Xh[t, :3] / Xh[t, 3:], K)
+    err = np.hypot(*(proj - uv).T)
+    assert np.median(err) < 0.3 and np.mean(err < 1.0) >= 0.95, (np.median(err), np.mean(err < 1.0))

@@ -40,6 +40,7 @@ import numpy as np
 from ..config import PointsConfig
 from ..data import Capture, PointTracks
 from ..geometry import rotation_angle_deg, rotation_homography, turned_degrees
+from ..lines.tracking import median_step_deg
 from ..progress import progress
 
 log = logging.getLogger("panosfm.points")
@@ -90,9 +91,10 @@ def _eigen_ratio(grey: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return lo / np.maximum(hi, 1e-12)
 
 
-def _step(g0: np.ndarray, g1: np.ndarray, p0: np.ndarray, guess: np.ndarray, config: PointsConfig
-          ) -> tuple[np.ndarray, np.ndarray]:
-    """Returns ((N, 2) positions in g1, (N,) bool kept) of points ``p0`` of g0, LK started at ``guess``."""
+def _step(g0: np.ndarray, g1: np.ndarray, p0: np.ndarray, guess: np.ndarray, config: PointsConfig,
+          max_parallax_px: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((N, 2) positions in g1, (N,) bool kept) of points ``p0`` of g0, LK started at ``guess``, at most
+    ``max_parallax_px`` (default ``points.max_parallax_px``) from it."""
     if not len(p0):
         return np.zeros((0, 2), np.float32), np.zeros(0, bool)
     p1, st, _ = cv2.calcOpticalFlowPyrLK(g0, g1, p0[:, None], guess[:, None].astype(np.float32).copy(),
@@ -105,7 +107,7 @@ def _step(g0: np.ndarray, g1: np.ndarray, p0: np.ndarray, guess: np.ndarray, con
     inside = (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
     ok = (st.ravel() == 1) & (st2.ravel() == 1) & inside
     ok &= np.hypot(*(back - p0).T) <= config.fb_px
-    ok &= np.hypot(*(p1 - guess).T) <= config.max_parallax_px
+    ok &= np.hypot(*(p1 - guess).T) <= (config.max_parallax_px if max_parallax_px is None else max_parallax_px)
     return p1, ok
 
 
@@ -118,11 +120,14 @@ def track_points(capture: Capture, R_wc: np.ndarray, config: PointsConfig) -> Po
     pts = np.zeros((0, 2), np.float32)
     next_id = 0
     prev = None
+    # the parallax grows with the baseline, so with the spin's step (60 per turn: 24 px at 1 m on a 0.3 m arm)
+    finite = np.all(np.isfinite(R_wc), axis=(1, 2))
+    max_parallax = config.max_parallax_px * max(1.0, median_step_deg(R_wc[finite]) / config.parallax_ref_step_deg)
     for i in progress(range(n), "points", total=n):
         g = _grey(capture, i)
         if prev is not None and len(pts) and np.all(np.isfinite(R_wc[[i - 1, i]])):
             guess = _apply(rotation_homography(K, R_wc[i - 1], R_wc[i]), pts.astype(np.float64))
-            pts, ok = _step(prev, g, pts, guess, config)
+            pts, ok = _step(prev, g, pts, guess, config, max_parallax)
             pts, ids = pts[ok], ids[ok]
         elif prev is not None:
             pts, ids = np.zeros((0, 2), np.float32), np.zeros(0, np.int64)
