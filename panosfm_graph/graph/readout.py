@@ -14,7 +14,7 @@ import numpy as np
 import factors
 
 from ..data import Camera, LineModel, Preprocessed, Solution, Tracks
-from ..geometry import closest_on_lines, world_rays
+from ..geometry import closest_on_lines, interpretation_normals, world_rays
 from .problem import _Problem, center_key, line_key
 
 
@@ -124,8 +124,6 @@ def lines_at_poses(pre: Preprocessed, tracks: Tracks, sol: Solution, only_missin
     axis = np.clip(tracks.axis, 0, 2)
     other = np.array([[1, 2], [0, 2], [0, 1]])[axis]  # (T, 2) the two Manhattan axes orthogonal to each line
     K = sol.camera.K
-    from ..geometry import interpretation_normals
-
     n = np.einsum("sij,sj->si", sol.R_wc[f], interpretation_normals(K, seg.endpoints[s].astype(np.float64)))
     a = np.einsum("si,sji->sj", n, M[other[t]])  # (S, 2): n . e_1, n . e_2
     b = np.einsum("si,si->s", n, sol.centers[f])
