@@ -388,13 +388,19 @@ def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
     from .graph import (bundle_adjust, bundle_adjust_incremental, place_by_motion_model, solve_at_final_scale,
                         steady_or_hand_held)
 
+    def place(sol: Solution) -> Solution:
+        """The frames the lines leave without a pose, placed by the spin's motion model and the point tracks
+        where the std is small enough (the points are tracked only when there are such frames)."""
+        if points is not None and config.points.enabled and config.graph.motion_model and not sol.registered.all():
+            result.points = points()
+        return place_by_motion_model(pre, result.tracks, sol, config.graph, points=result.points,
+                                     points_config=config.points)
+
     if not result.linear.registered.any():  # nothing to adjust: the point tracks alone may place the frames
         log.warning("the linear solve registered no frame: bundle adjustment skipped")
         if points is None or not (config.points.enabled and config.graph.motion_model):
             return result.linear
-        result.points = points()
-        return place_by_motion_model(pre, result.tracks, result.linear, config.graph, points=result.points,
-                                     points_config=config.points)
+        return place(result.linear)
     if config.linear.zero_translation:
         # the paper's baseline keeps every camera centre at the origin; BA would move them
         log.info("zero-translation baseline: bundle adjustment skipped, the linear solve is the result")
@@ -424,12 +430,7 @@ def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
                                              config.linear, config.graph, sol)
     if steady_linear is None and not resolved:
         sol = solve_at_final_scale(pre, result.tracks, result.relations, result.linear, config.graph, sol)
-    # the frames the lines leave without a pose: placed by the spin's motion model and the point tracks where the
-    # std is small enough (the points are tracked only when there are such frames)
-    if points is not None and config.points.enabled and config.graph.motion_model and not sol.registered.all():
-        result.points = points()
-    return place_by_motion_model(pre, result.tracks, sol, config.graph, points=result.points,
-                                 points_config=config.points)
+    return place(sol)
 
 
 # --- outputs ----------------------------------------------------------------------------------------

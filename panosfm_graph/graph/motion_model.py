@@ -79,8 +79,13 @@ def place_by_motion_model(pre: Preprocessed, tracks: Tracks, sol: Solution, conf
     is kept.
     """
     has_points = points is not None and len(points.frame) > 0 and points_config.enabled
+    points = points if has_points else None
     if int(sol.registered.sum()) < MIN_FIXED:
-        return _place(pre, tracks, sol, config, points, points_config, anchor_free=has_points)
+        out = _place(pre, tracks, sol, config, points, points_config, anchor_free=has_points)
+        if out.residuals.get("motion_model", {}).get("anchor_free"):  # no line was held: the tracks the placed
+            out = dataclasses.replace(out, lines=lines_at_poses(pre, tracks, out))  # frames see, at their poses
+            out.residuals["lines_at_poses"] = int(out.lines.valid.sum())
+        return out
     anchored = _place(pre, tracks, sol, config, points, points_config, anchor_free=False)
     if not has_points or config.motion_lines_points_max_rel <= 0 or "motion_model" not in anchored.residuals:
         return anchored
@@ -125,7 +130,8 @@ def _lines_or_points(pre: Preprocessed, tracks: Tracks, sol: Solution, anchored:
 
 def _place(pre: Preprocessed, tracks: Tracks, sol: Solution, config: GraphConfig, points: PointTracks | None,
            points_config: PointsConfig, anchor_free: bool) -> Solution:
-    """Returns ``sol`` with the frames the motion model places (:func:`place_by_motion_model`); ``anchor_free``:
+    """Returns ``sol`` with the frames the motion model places (:func:`place_by_motion_model`; ``points`` None or
+    non-empty, its lines as they were); ``anchor_free``:
     every frame placed by the point tracks alone in a gauge of their own (a stand point at the origin, the arm's
     forward length ``graph.metric_arm_fallback_m``, one frame's rotation)."""
     F = len(sol.registered)
@@ -136,7 +142,7 @@ def _place(pre: Preprocessed, tracks: Tracks, sol: Solution, config: GraphConfig
     res["frame_source"], res["frame_sigma_rel"] = source, [None] * F
     fixed = np.flatnonzero(sol.registered)
     todo = np.flatnonzero(~sol.registered & np.all(np.isfinite(pre.R_wc), axis=(1, 2)))
-    has_points = points is not None and len(points.frame) > 0 and points_config.enabled
+    has_points = points is not None
     if not config.motion_model or not len(todo) or (len(fixed) < MIN_FIXED and not anchor_free):
         return dataclasses.replace(sol, residuals=res)
     t0 = time.perf_counter()
@@ -220,13 +226,9 @@ def _place(pre: Preprocessed, tracks: Tracks, sol: Solution, config: GraphConfig
         res["spin_arm_m"] = float(np.hypot(*result.atVector(ARM_KEY)))
     log.info("motion model: %d of %d frames placed (std <= %.1f %% of the spin's diameter), %d left out%s",
              int(ok.sum()), len(todo), 100 * config.motion_max_sigma_rel, int((~ok).sum()),
-             " (by point tracks alone: too few line-fixed frames)" if anchor_free else "")
-    out = dataclasses.replace(sol, centers=centers, registered=registered, R_wc=R_out, residuals=res,
-                              metric=sol.metric and not anchor_free)
-    if anchor_free:  # no line was held: the tracks the placed frames see, triangulated at their poses
-        out = dataclasses.replace(out, lines=lines_at_poses(pre, tracks, out))
-        res["lines_at_poses"] = int(out.lines.valid.sum())
-    return out
+             " (by point tracks alone)" if anchor_free else "")
+    return dataclasses.replace(sol, centers=centers, registered=registered, R_wc=R_out, residuals=res,
+                               metric=sol.metric and not anchor_free)
 
 
 def _largest_center_std(graph, batches: list, result: gtsam.Values, todo: np.ndarray, diameter: float,

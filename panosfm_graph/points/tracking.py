@@ -31,7 +31,6 @@ the working images.
 """
 from __future__ import annotations
 
-import dataclasses
 import logging
 
 import cv2
@@ -92,9 +91,9 @@ def _eigen_ratio(grey: np.ndarray, xy: np.ndarray) -> np.ndarray:
 
 
 def _step(g0: np.ndarray, g1: np.ndarray, p0: np.ndarray, guess: np.ndarray, config: PointsConfig,
-          max_parallax_px: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+          max_parallax_px: float) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((N, 2) positions in g1, (N,) bool kept) of points ``p0`` of g0, LK started at ``guess``, at most
-    ``max_parallax_px`` (default ``points.max_parallax_px``) from it."""
+    ``max_parallax_px`` from it."""
     if not len(p0):
         return np.zeros((0, 2), np.float32), np.zeros(0, bool)
     p1, st, _ = cv2.calcOpticalFlowPyrLK(g0, g1, p0[:, None], guess[:, None].astype(np.float32).copy(),
@@ -107,7 +106,7 @@ def _step(g0: np.ndarray, g1: np.ndarray, p0: np.ndarray, guess: np.ndarray, con
     inside = (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
     ok = (st.ravel() == 1) & (st2.ravel() == 1) & inside
     ok &= np.hypot(*(back - p0).T) <= config.fb_px
-    ok &= np.hypot(*(p1 - guess).T) <= (config.max_parallax_px if max_parallax_px is None else max_parallax_px)
+    ok &= np.hypot(*(p1 - guess).T) <= max_parallax_px
     return p1, ok
 
 
@@ -202,7 +201,6 @@ def _close_loops(capture: Capture, R_wc: np.ndarray, frames: list, tracks: list,
     if not pairs:
         return frames, tracks, xy
     K = capture.camera.K
-    loose = dataclasses.replace(config, max_parallax_px=config.loop_parallax_px)
     seen: set[tuple[int, int]] = set()
     frames, tracks, xy = list(frames), list(tracks), list(xy)
     added = 0
@@ -213,7 +211,7 @@ def _close_loops(capture: Capture, R_wc: np.ndarray, frames: list, tracks: list,
         H = rotation_homography(K, R_wc[i], R_wc[j])
         g_i, g_j = _grey(capture, i), _grey(capture, j)
         guess = _apply(H, pts.astype(np.float64)) + _coarse_shift(g_i, g_j, H)
-        p1, ok = _step(g_i, g_j, pts, guess, loose)
+        p1, ok = _step(g_i, g_j, pts, guess, config, config.loop_parallax_px)
         keep = [k for k in np.flatnonzero(ok) if (int(ids[k]), j) not in seen]
         seen.update((int(ids[k]), j) for k in keep)
         if keep:
