@@ -377,6 +377,10 @@ class GraphConfig:
     # from the points', the points' poses are kept and the lines triangulated again at them (0: off); see
     # docs/decisions.md#lines-or-points
     motion_lines_points_max_rel: float = 0.01
+    # where the point tracks placed the frames, the lines triangulated at those poses are then bundle-adjusted with
+    # the poses held: reprojection, colinearity and the kept coplanarity relations (False: triangulated only); see
+    # docs/decisions.md#lines-at-held-poses
+    lines_held_poses: bool = True
     # metric scale: the floor moves down to the deepest horizontal line seen in at least this many frames (0: off);
     # see docs/decisions.md#floor-below-lines
     floor_below_lines_min_obs: int = 3

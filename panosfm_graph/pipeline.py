@@ -394,7 +394,7 @@ def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
         if points is not None and config.points.enabled and config.graph.motion_model and not sol.registered.all():
             result.points = points()
         return place_by_motion_model(pre, result.tracks, sol, config.graph, points=result.points,
-                                     points_config=config.points)
+                                     points_config=config.points, relations=result.relations)
 
     if not result.linear.registered.any():  # nothing to adjust: the point tracks alone may place the frames
         log.warning("the linear solve registered no frame: bundle adjustment skipped")

@@ -132,8 +132,13 @@ def _build_graph(pre: Preprocessed, relations: Relations, prob: _Problem, phase:
         for jj in range(n_knots - 1):
             graph.add(gtsam.BetweenFactorPoint3(stand_key(jj), stand_key(jj + 1), np.zeros(3), walk))
         counts["spin"] = len(prob.frames)
-    # gauge: first centre, scale
     tight = lambda d: gtsam.noiseModel.Isotropic.Sigma(d, GAUGE_SIGMA)  # noqa: E731
+    if "held_centers" in gauge:  # the poses held (adjust_lines_at_poses): each centre fixes the gauge, the floor free
+        for i in prob.frames:
+            graph.add(gtsam.PriorFactorPoint3(center_key(i), gauge["held_centers"][i], tight(3)))
+        counts["prior"] += len(prob.frames)
+        return graph, counts, batches
+    # gauge: first centre, scale
     graph.add(gtsam.PriorFactorPoint3(center_key(gauge["first"]), gauge["first_center"], tight(3)))
     counts["prior"] += 1
     if gauge["use_floor"] and not config.scale_line_gauge:

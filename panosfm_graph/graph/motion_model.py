@@ -48,9 +48,10 @@ import factors
 
 from ..config import GraphConfig
 from ..config import PointsConfig
-from ..data import PointTracks, Preprocessed, Solution, Tracks
+from ..data import PointTracks, Preprocessed, Relations, Solution, Tracks
 from ..geometry import triangulate_dlt, turned_degrees
 from .factor_graph import reprojection_kernel
+from .held_poses import adjust_lines_at_poses
 from .lm import levenberg_marquardt
 from .readout import lines_at_poses
 from .problem import ARM_KEY, center_key, line_key, point_key, rotation_key, stand_key
@@ -64,8 +65,8 @@ MIN_POINT_OBS = 6  # a placed frame with this many point observations is placed 
 
 
 def place_by_motion_model(pre: Preprocessed, tracks: Tracks, sol: Solution, config: GraphConfig,
-                          points: PointTracks | None = None, points_config: PointsConfig = PointsConfig()
-                          ) -> Solution:
+                          points: PointTracks | None = None, points_config: PointsConfig = PointsConfig(),
+                          relations: Relations | None = None) -> Solution:
     """Returns ``sol`` with the frames the motion model places within its sigma bound registered (module docstring).
 
     ``residuals["frame_source"]`` (per frame: "lines", "steady circle" where the steady style placed it,
@@ -76,7 +77,8 @@ def place_by_motion_model(pre: Preprocessed, tracks: Tracks, sol: Solution, conf
     With point tracks and fewer than ``MIN_FIXED`` line-fixed frames the points alone place every frame
     (anchor-free). With enough, the spin is also placed by the points alone and compared with the line-fixed
     frames (:func:`_lines_or_points`): where the two disagree, the lines' solution is wrong and the points'
-    is kept.
+    is kept. Lines triangulated at the points' poses are then adjusted with the poses held, with ``relations``
+    where given and ``graph.lines_held_poses`` (:func:`~.held_poses.adjust_lines_at_poses`).
     """
     has_points = points is not None and len(points.frame) > 0 and points_config.enabled
     points = points if has_points else None
@@ -85,12 +87,24 @@ def place_by_motion_model(pre: Preprocessed, tracks: Tracks, sol: Solution, conf
         if out.residuals.get("motion_model", {}).get("anchor_free"):  # no line was held: the tracks the placed
             out = dataclasses.replace(out, lines=lines_at_poses(pre, tracks, out))  # frames see, at their poses
             out.residuals["lines_at_poses"] = int(out.lines.valid.sum())
+            out = _adjust_lines(pre, tracks, relations, out, config)
         return out
     anchored = _place(pre, tracks, sol, config, points, points_config, anchor_free=False)
     if not has_points or config.motion_lines_points_max_rel <= 0 or "motion_model" not in anchored.residuals:
         return anchored
     free = _place(pre, tracks, sol, config, points, points_config, anchor_free=True)
-    return _lines_or_points(pre, tracks, sol, anchored, free, config)
+    out = _lines_or_points(pre, tracks, sol, anchored, free, config)
+    replaced = out.residuals.get("motion_model", {}).get("lines_replaced", False)
+    return _adjust_lines(pre, tracks, relations, out, config) if replaced else out
+
+
+def _adjust_lines(pre: Preprocessed, tracks: Tracks, relations: Relations | None, sol: Solution,
+                  config: GraphConfig) -> Solution:
+    """Returns ``sol`` with its lines adjusted at its poses (:func:`~.held_poses.adjust_lines_at_poses`) where
+    ``relations`` are given and ``graph.lines_held_poses`` is on."""
+    if relations is None or not config.lines_held_poses:
+        return sol
+    return adjust_lines_at_poses(pre, tracks, relations, sol, config)
 
 
 def _lines_or_points(pre: Preprocessed, tracks: Tracks, sol: Solution, anchored: Solution, free: Solution,
