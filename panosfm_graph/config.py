@@ -153,6 +153,9 @@ class PointsConfig:
     """Point tracks (our addition, issue #40; points/tracking.py): corners followed by optical flow."""
 
     enabled: bool = True  # False: no point tracks (the motion model places frames by the spin and lines alone)
+    # a zero-baseline spin: the point tracks join the rotations' adjustment as bearings (False: lines only); see
+    # docs/decisions.md#zero-baseline-points
+    zero_baseline: bool = True
     per_frame: int = 150  # corners kept per frame (tracked ones first, new ones seeded where none run)
     quality: float = 0.01  # goodFeaturesToTrack's qualityLevel
     min_distance_px: float = 12.0  # between corners

@@ -110,6 +110,11 @@ class RunResult:
                        if zb.get("detected") else "measured")
             lines.append(f"  baseline    {verdict} (lines drift {zb['parallax_px']:.2f} px off their plane through "
                          f"the camera, median of {zb['tracks']} tracks; zero under {zb['threshold_px']:g} px)")
+        if ba.get("zero_baseline") and "reprojection_rms" in ba:
+            pts = f" and {ba['point_tracks']} point tracks" if ba.get("point_tracks") else ""
+            kept = (f": the {'lines and points' if pts else 'lines'} fitted worse, the preprocessed rotations kept"
+                    if ba.get("kept_preprocessed") else "")
+            lines.append(f"  rotations   adjusted about the shared centre by {ba['lines']} lines{pts}{kept}")
         style, check = s.get("spin_style"), ba.get("steady_check")
         if style:
             why = ""
@@ -413,7 +418,10 @@ def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
             return result.linear
         from .graph import rotation_bundle_adjust
 
-        return rotation_bundle_adjust(pre, result.tracks, result.linear, config.graph)
+        if points is not None and config.points.enabled and config.points.zero_baseline:
+            result.points = points()
+        return rotation_bundle_adjust(pre, result.tracks, result.linear, config.graph, points=result.points,
+                                      points_config=config.points)
     if config.graph.incremental_batch:
         batches = bundle_adjust_incremental(pre, result.tracks, result.relations, result.linear,
                                             config.graph, on_batch=on_batch)

@@ -159,3 +159,37 @@ def test_real_bathroom_rotations_beat_the_imu_and_the_drift_fit_does_not_feed_on
     old = err(refine_manhattan_and_rotations(segments, cap, with_overrides(cfg, rotation={"drift_feedback": True})).R_wc)
     assert now < 0.35 and now < 0.5 * err(cap.R_wc_imu)
     assert now < old - 0.05
+
+
+def test_point_tracks_tie_a_tripod_spins_rotations_closer_than_the_lines_alone(captures):
+    """With the point tracks as bearings (``points.zero_baseline``) the zero-baseline BA's rotations are closer to
+    the truth than with the lines alone, and fit every observation no worse than the preprocessed rotations."""
+    import dataclasses
+
+    from panosfm_graph.config import Config
+    from panosfm_graph.data import Relations
+    from panosfm_graph.evaluate import rotation_alignment
+    from panosfm_graph.geometry import rotation_angle_deg
+    from panosfm_graph.graph import rotation_bundle_adjust
+    from panosfm_graph.linear import solve_linear
+    from panosfm_graph.points import track_points
+
+    cap, pre, tracks = _preprocessed(captures["tripod"])
+    cfg = Config()
+    none = Relations(kind=np.zeros(0, np.int8), track_a=np.zeros(0, np.int32), track_b=np.zeros(0, np.int32),
+                     normal_axis=np.zeros(0, np.int8), support=np.zeros(0, np.int32))
+    linear = solve_linear(pre, tracks, none, cap.camera, dataclasses.replace(cfg.linear, zero_translation=True))
+    points = track_points(cap, pre.R_wc, cfg.points)
+    lines_only = rotation_bundle_adjust(pre, tracks, linear, cfg.graph)
+    with_points = rotation_bundle_adjust(pre, tracks, linear, cfg.graph, points=points, points_config=cfg.points)
+    gt = cap.ground_truth.R_wc
+
+    def err(R):
+        B = rotation_alignment(R, gt)
+        return np.median(rotation_angle_deg(np.einsum("ij,njk->nik", B, R), gt))
+
+    res = with_points.residuals
+    assert res["point_tracks"] >= 50 and not res.get("kept_preprocessed")
+    assert res["point_rms"] < res["point_rms_initial"]
+    assert err(with_points.R_wc) < 0.7 * err(lines_only.R_wc), (err(with_points.R_wc), err(lines_only.R_wc))
+    assert with_points.registered.all() and np.all(with_points.centers == 0.0)

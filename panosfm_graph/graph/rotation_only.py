@@ -13,9 +13,17 @@ towards its segments' mean viewing ray, a weak isotropic prior (sigma 1 unit: ab
 line) holds that distance and the point along the line, and the lines are drawn at that distance (on a
 cylinder about the centre, as directions; ``residuals["assumed_line_distance"]``).
 
-Not worse than its input by its own measure: when the lines' RMS reprojection distance ends higher than
-with the preprocessed rotations, those are kept and ``residuals["kept_preprocessed"]`` says so. Measured
-(docs/decisions.md#zero-baseline-rotations): real panorama cuts move 0.1 degrees (median), the worst frames most.
+With point tracks (:mod:`panosfm_graph.points`, ``points.zero_baseline``) each texture corner tracked over
+``points.min_frames`` frames joins as a bearing: a ``Point3`` ``p<k>`` at the assumed distance with the same weak
+prior, seen through :class:`factors.PointProjectionSet` (Huber) from the fixed centre, as a panorama stitcher ties
+its frames. The lines hold the rotations to the Manhattan directions, and a real room's walls depart from them by a
+fraction of a degree, wall by wall; the corners tie neighbouring frames to each other whatever the walls do
+(docs/decisions.md#zero-baseline-points).
+
+Not worse than its input by its own measure: when the RMS reprojection distance over every observation (lines, and
+points where they joined) ends higher than with the preprocessed rotations, those are kept and
+``residuals["kept_preprocessed"]`` says so. Measured (docs/decisions.md#zero-baseline-rotations): real panorama
+cuts move 0.1 degrees (median), the worst frames most.
 """
 from __future__ import annotations
 
@@ -28,12 +36,12 @@ import numpy as np
 
 import factors
 
-from ..config import GraphConfig
-from ..data import LineModel, Preprocessed, Solution, Tracks
+from ..config import GraphConfig, PointsConfig
+from ..data import LineModel, PointTracks, Preprocessed, Solution, Tracks
 from ..geometry import rotation_angle_deg, world_rays
 from .factor_graph import GAUGE_SIGMA, widened_robust_k
 from .lm import levenberg_marquardt
-from .problem import center_key, line_key, rotation_key
+from .problem import center_key, line_key, point_key, rotation_key
 from .readout import line_extents, track_extents
 
 log = logging.getLogger("panosfm.graph")
@@ -56,7 +64,43 @@ def _initial_taylor(pre: Preprocessed, tracks: Tracks, K: np.ndarray, obs_seg: n
     return ASSUMED_DISTANCE * mean / np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
 
 
-def rotation_bundle_adjust(pre: Preprocessed, tracks: Tracks, initial: Solution, config: GraphConfig) -> Solution:
+def _bearing_set(points: PointTracks, R_wc: np.ndarray, K: np.ndarray, config: PointsConfig,
+                 graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, prior) -> factors.PointProjectionSet | None:
+    """Returns the observations of the point tracks seen in ``points_config.min_frames`` frames as bearings
+    (module docstring), each point inserted into ``values`` at ``ASSUMED_DISTANCE`` along the mean viewing ray of
+    its observations at ``R_wc`` with the weak ``prior`` in ``graph``; None where no track is that long."""
+    t = points.track.astype(np.int64)
+    keep = np.bincount(t, minlength=points.n)[t] >= config.min_frames
+    if not keep.any():
+        return None
+    ray = world_rays(K, R_wc[points.frame], points.xy.astype(np.float64))
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    mean = np.stack([np.bincount(t, ray[:, k], minlength=points.n) for k in range(3)], axis=1)
+    bearing = ASSUMED_DISTANCE * mean / np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
+    pt, pf = t[keep], points.frame[keep].astype(np.int64)
+    for p in np.unique(pt):
+        values.insert(point_key(int(p)), bearing[p])
+        graph.add(gtsam.PriorFactorPoint3(point_key(int(p)), bearing[p], prior))
+    return factors.PointProjectionSet([center_key(0)] * len(pt), [point_key(int(p)) for p in pt],
+                                      points.xy[keep].astype(np.float64), K, config.sigma_px, R_wc[pf],
+                                      rotation_keys=[rotation_key(int(i)) for i in pf], robust="huber",
+                                      k=config.robust_k)
+
+
+def _fit_rms(line_rms: float, n_lines: int, bearings: factors.PointProjectionSet | None, values: gtsam.Values,
+             res: dict, key: str) -> float:
+    """Returns the RMS reprojection distance (px) over the line observations (``line_rms`` over ``n_lines``) and the
+    bearings' at ``values``; the bearings' own RMS goes into ``res[key]``."""
+    if bearings is None:
+        return line_rms
+    sq = np.sum(bearings.residuals(values) ** 2, axis=1)
+    res[key] = float(np.sqrt(np.mean(sq)))
+    return float(np.sqrt((n_lines * line_rms ** 2 + np.sum(sq)) / (n_lines + len(sq))))
+
+
+def rotation_bundle_adjust(pre: Preprocessed, tracks: Tracks, initial: Solution, config: GraphConfig,
+                           points: PointTracks | None = None, points_config: PointsConfig = PointsConfig()
+                           ) -> Solution:
     """Returns the zero-baseline solution with rotations refined by the lines (module docstring), centres at 0.
 
     ``initial``: the linear zero-translation solve (every frame registered, centres 0). The result keeps its
@@ -111,6 +155,11 @@ def rotation_bundle_adjust(pre: Preprocessed, tracks: Tracks, initial: Solution,
         for i in range(F - 1):
             graph.add(factors.imu_rotation_factor(rotation_key(i), rotation_key(i + 1), pre.R_wc_imu[i],
                                                   pre.R_wc_imu[i + 1], noise))
+    bearings = _bearing_set(points, R0, K, points_config, graph, values, line_prior) if points is not None else None
+    batches = [] if bearings is None else [bearings]
+    if bearings is not None:
+        res["point_tracks"], res["point_observations"] = len(set(bearings.point_keys)), len(bearings)
+    fit0 = _fit_rms(rms0, len(obs_seg), bearings, values, res, "point_rms_initial")
     ks = tuple(config.reprojection_robust_k) or (0.0,)
     k_final = float(ks[-1])
     k_first = widened_robust_k(config, k_final, rms0) if k_final > 0 else 0.0
@@ -121,20 +170,22 @@ def rotation_bundle_adjust(pre: Preprocessed, tracks: Tracks, initial: Solution,
                                           A[obs_track], K, config.reprojection_sigma_px,
                                           rotation_keys=[rotation_key(int(i)) for i in obs_frame], robust=robust,
                                           k=k if k > 0 else 1.345)
-        values, info = levenberg_marquardt(graph, values, max_iterations=config.max_iterations, batches=[rep])
+        values, info = levenberg_marquardt(graph, values, max_iterations=config.max_iterations,
+                                           batches=[rep] + batches)
     R = np.array([values.atRot3(rotation_key(i)).matrix() for i in range(F)])
     raw = np.array([values.atPoint3(line_key(int(t))) for t in lines]).reshape(-1, 3)
     taylor = np.zeros((tracks.n, 3))
     raw = factors.taylor_from_point_direction(raw, A[lines])
     taylor[lines] = ASSUMED_DISTANCE * raw / np.maximum(np.linalg.norm(raw, axis=1, keepdims=True), 1e-12)
     rms1 = rms(taylor, R)
+    fit1 = _fit_rms(rms1, len(obs_seg), bearings, values, res, "point_rms")  # every observation's, as fit0
     moved = rotation_angle_deg(R, R0)
     res.update(reprojection_rms_initial=rms0, reprojection_rms=rms1, iterations=int(info.get("iterations", 0)),
                rotation_change_deg={"median": float(np.median(moved)), "max": float(np.max(moved))},
                seconds=time.perf_counter() - t0)
-    if not rms1 <= rms0:  # the lines fit worse: keep the preprocessed rotations (never silently worse)
-        log.warning("zero baseline: the rotation refinement fits the lines worse (%.2f -> %.2f px): kept the "
-                    "preprocessed rotations", rms0, rms1)
+    if not fit1 <= fit0:  # the lines (and points) fit worse: keep the preprocessed rotations (never silently worse)
+        log.warning("zero baseline: the rotation refinement fits the %s worse (%.2f -> %.2f px): kept the "
+                    "preprocessed rotations", "lines and points" if batches else "lines", fit0, fit1)
         res["kept_preprocessed"] = True
         return _with(initial, res)
     extent = np.zeros((tracks.n, 2))
