@@ -24,6 +24,7 @@ import functools
 import gtsam
 import numpy as np
 
+from factors.line_reprojection import push_split_column
 from factors.robust import robust_loss, robust_weight
 
 MIN_DEPTH = 1e-3  # solution units
@@ -37,13 +38,16 @@ def _skew(v: np.ndarray) -> np.ndarray:
 
 
 def point_terms(uv: np.ndarray, P: np.ndarray, C: np.ndarray, R: np.ndarray, K: np.ndarray,
-                jacobians: bool = False):
+                jacobians: bool = False, fx: float | None = None):
     """Returns the (N, 2) pixel residuals of N observations ``uv`` of points ``P`` (N, 3) from centres ``C`` (N, 3)
-    at rotations ``R`` (N, 3, 3); with ``jacobians`` also the (N, 2, 3) Jacobians on the centre, the point and the
-    rotation (right perturbation)."""
+    at rotations ``R`` (N, 3, 3); ``fx`` a focal length replacing K's (fy keeps the aspect). With ``jacobians``
+    also the (N, 2, 3) Jacobians on the centre, the point and the rotation (right perturbation) and the (N, 2) one
+    on fx."""
     X = np.einsum("nji,nj->ni", R, P - C)
     z = np.maximum(X[:, 2], MIN_DEPTH)
-    fx, fy = K[0, 0], K[1, 1]
+    aspect = K[1, 1] / K[0, 0]
+    fx = K[0, 0] if fx is None else float(fx)
+    fy = fx * aspect
     r = np.stack([fx * X[:, 0] / z + K[0, 2] - uv[:, 0], fy * X[:, 1] / z + K[1, 2] - uv[:, 1]], axis=1)
     if not jacobians:
         return r
@@ -53,7 +57,8 @@ def point_terms(uv: np.ndarray, P: np.ndarray, C: np.ndarray, R: np.ndarray, K: 
     D[X[:, 2] < MIN_DEPTH, :, 2] = 0.0
     J_p = np.einsum("nij,nkj->nik", D, R)  # D R^T
     J_r = np.einsum("nij,njk->nik", D, _skew(X))
-    return r, -J_p, J_p, J_r
+    J_f = np.stack([X[:, 0] / z, aspect * X[:, 1] / z], axis=1)
+    return r, -J_p, J_p, J_r, J_f
 
 
 def project_points(R_wc: np.ndarray, centers: np.ndarray, points: np.ndarray, K: np.ndarray
@@ -66,33 +71,39 @@ def project_points(R_wc: np.ndarray, centers: np.ndarray, points: np.ndarray, K:
     return uv, X[:, 2]
 
 
-def point_projection_error(R_wc: np.ndarray | None, K: np.ndarray, uv: np.ndarray, this: gtsam.CustomFactor,
-                           values: gtsam.Values, jacobians) -> np.ndarray:
+def point_projection_error(R_wc: np.ndarray | None, K: np.ndarray, uv: np.ndarray, has_focal: bool,
+                           this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
     """Returns the 2-vector pixel residual of the point (key 1) seen from the centre (key 0) at rotation ``R_wc``
-    (held) or, when ``R_wc`` is None, at the rotation of key 2."""
+    (held) or, when ``R_wc`` is None, at the rotation of key 2; with ``has_focal`` the last key is the focal
+    length fx (a 1-vector; fy keeps K's aspect)."""
     keys = this.keys()
     R = values.atRot3(keys[2]).matrix() if R_wc is None else R_wc
+    fx = values.atVector(keys[-1])[0] if has_focal else None
     out = point_terms(uv[None], values.atPoint3(keys[1])[None], values.atPoint3(keys[0])[None], R[None], K,
-                      jacobians=jacobians is not None)
+                      jacobians=jacobians is not None, fx=fx)
     if jacobians is None:
         return out[0]
-    r, J_c, J_p, J_r = out
+    r, J_c, J_p, J_r, J_f = out
     jacobians[0], jacobians[1] = J_c[0], J_p[0]
     if R_wc is None:
         jacobians[2] = J_r[0]
+    if has_focal:
+        jacobians[len(keys) - 1] = J_f[0][:, None]
     return r[0]
 
 
 def point_projection_factor(center_key: int, point_key: int, uv: np.ndarray, K: np.ndarray, noise, *,
-                            R_wc: np.ndarray | None = None, rotation_key: int | None = None) -> gtsam.CustomFactor:
-    """Returns a CustomFactor on (Point3 centre, Point3 point[, Rot3 rotation]): :func:`point_projection_error`
-    (2-dim ``noise``); give the held ``R_wc`` or the variable's ``rotation_key``."""
+                            R_wc: np.ndarray | None = None, rotation_key: int | None = None,
+                            focal_key: int | None = None) -> gtsam.CustomFactor:
+    """Returns a CustomFactor on (Point3 centre, Point3 point[, Rot3 rotation][, focal]):
+    :func:`point_projection_error` (2-dim ``noise``); give the held ``R_wc`` or the variable's ``rotation_key``."""
     if (R_wc is None) == (rotation_key is None):
         raise ValueError("give R_wc or rotation_key")
     R = None if R_wc is None else np.asarray(R_wc, np.float64).reshape(3, 3)
     fn = functools.partial(point_projection_error, R, np.asarray(K, np.float64).reshape(3, 3),
-                           np.asarray(uv, np.float64).reshape(2))
+                           np.asarray(uv, np.float64).reshape(2), focal_key is not None)
     keys = [center_key, point_key] + ([] if rotation_key is None else [rotation_key])
+    keys += [] if focal_key is None else [int(focal_key)]
     return gtsam.CustomFactor(noise, keys, fn)
 
 
@@ -103,11 +114,14 @@ class PointProjectionSet:
     kernel with threshold ``k`` on each observation's whitened residual norm (as
     ``factors.noise_model(2, sigma, robust, k)`` on :func:`point_projection_factor`).
     Each observation's rotation is held (``R_wc_fixed`` (N, 3, 3)) or a
-    variable (``rotation_keys``, None where held).
+    variable (``rotation_keys``, None where held). With ``focal_key`` (every
+    rotation a variable) the focal length fx is a variable too, its column
+    split from the 3-key factors as :class:`factors.LineReprojectionSet`'s.
     """
 
     def __init__(self, center_keys, point_keys, uv: np.ndarray, K: np.ndarray, sigma: float,
-                 R_wc_fixed: np.ndarray, rotation_keys=None, robust: str = "huber", k: float = 1.345):
+                 R_wc_fixed: np.ndarray, rotation_keys=None, robust: str = "huber", k: float = 1.345,
+                 focal_key: int | None = None):
         robust_weight(np.zeros(1), robust, k)  # an unknown kernel is an error here
         self.robust, self.k, self.sigma = robust, float(k), float(sigma)
         self.uv = np.ascontiguousarray(uv, np.float64).reshape(-1, 2)
@@ -126,16 +140,22 @@ class PointProjectionSet:
         free_keys = np.asarray([r for r in self.rotation_keys if r is not None], np.uint64)
         self._rots, self._rot_of = np.unique(free_keys, return_inverse=True)
         self._unit = gtsam.noiseModel.Unit.Create(2)
+        self.focal_key = None if focal_key is None else int(focal_key)
+        if self.focal_key is not None and not self._free.all():
+            raise ValueError("a focal variable needs every observation's rotation a variable")
 
     def __len__(self) -> int:
         return len(self.uv)
+
+    def _fx(self, values: gtsam.Values) -> float | None:
+        return None if self.focal_key is None else float(values.atVector(self.focal_key)[0])
 
     def subset(self, keep: np.ndarray) -> "PointProjectionSet":
         """Returns the set of the observations where ``keep`` (N,) bool is True."""
         idx = np.flatnonzero(keep)
         return PointProjectionSet([self.center_keys[k] for k in idx], [self.point_keys[k] for k in idx], self.uv[idx],
                                   self.K, self.sigma, self.R_fixed[idx], [self.rotation_keys[k] for k in idx],
-                                  self.robust, self.k)
+                                  self.robust, self.k, self.focal_key)
 
     def point_rms(self, values: gtsam.Values) -> np.ndarray:
         """Returns (N,) the RMS residual norm (pixels) over all observations of each observation's point."""
@@ -157,7 +177,7 @@ class PointProjectionSet:
     def residuals(self, values: gtsam.Values) -> np.ndarray:
         """Returns the (N, 2) residuals in pixels at ``values``."""
         C, P, R = self._state(values)
-        return point_terms(self.uv, P, C, R, self.K)
+        return point_terms(self.uv, P, C, R, self.K, fx=self._fx(values))
 
     def error(self, values: gtsam.Values) -> float:
         """Returns the kernel's cost summed over the observations' whitened residual norms (``graph.error`` of
@@ -169,7 +189,7 @@ class PointProjectionSet:
         """Returns the whitened linearisation at ``values`` (one ``JacobianFactor`` per observation), reweighted by
         the kernel as gtsam's ``Robust::WhitenSystem``."""
         C, P, R = self._state(values)
-        r, J_c, J_p, J_r = point_terms(self.uv, P, C, R, self.K, jacobians=True)
+        r, J_c, J_p, J_r, J_f = point_terms(self.uv, P, C, R, self.K, jacobians=True, fx=self._fx(values))
         w = np.full(len(r), 1.0 / self.sigma)
         if self.robust != "none":
             w *= np.sqrt(robust_weight(np.linalg.norm(r, axis=1) * w, self.robust, self.k))
@@ -183,4 +203,8 @@ class PointProjectionSet:
                 gfg.push_back(gtsam.JacobianFactor(kc, ac, kp, ap, bb, unit))
             else:
                 gfg.push_back(gtsam.JacobianFactor(kc, ac, kp, ap, kr, ar, bb, unit))
+        if self.focal_key is not None:  # a 4th key: split into cross terms (line_reprojection.push_split_column)
+            parts = [(self._centers, self._center_of, A_c), (self._points, self._point_of, A_p),
+                     (self._rots, self._rot_of, A_r)]
+            push_split_column(gfg, self.focal_key, parts, w[:, None, None] * J_f[:, :, None], b)
         return gfg

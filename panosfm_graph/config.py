@@ -67,6 +67,9 @@ class FocalConfig:
     label_angle_deg: float = 85.0  # ... segments within 90 - this of a vanishing direction take part (the 85 degree rule)
     truncate_px: float = 2.0  # cost: each segment's end-point distance (px) from its vanishing point's line, truncated here
     min_sharpness: float = 1.01  # the cost 5 % off the estimate less than this many times higher: a warning
+    # then the point tracks as bearings about one centre (points/stitch.py): their focal length is taken where they
+    # fit within this RMS (px): a turn about the camera (0: off); see docs/decisions.md#stitched-focal-length
+    stitch_max_rms_px: float = 1.0
 
 
 @dataclass(frozen=True)

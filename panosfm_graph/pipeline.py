@@ -57,6 +57,7 @@ class RunResult:
     batches: list[Solution] = field(default_factory=list)
     thumbnails: Thumbnails | None = None
     focal: Any = None  # lines.focal.FocalEstimate where the focal length was estimated
+    focal_stitched: Any = None  # points.stitch.StitchedFocal where the point tracks were fitted for it
 
     def report(self) -> str:
         """Returns a short human-readable account of the run."""
@@ -104,6 +105,11 @@ class RunResult:
                        if abs(foc["focal_px"] - e["focal_px"]) > 0.05 else "")
             lines.append(f"  focal       estimated {e['focal_px']:.1f} px (HFOV {e['hfov_deg']:.1f} deg) from the "
                          f"Manhattan vanishing points{refined}")
+            st = foc.get("stitched")
+            if st:
+                verdict = "taken" if st["accepted"] else "not taken: the spin has parallax"
+                lines.append(f"              {st['focal_px']:.1f} px from {st['tracks']} point tracks as bearings "
+                             f"about one centre (RMS {st['rms_px']:.2f} px; {verdict})")
         zb = s.get("zero_baseline")
         if zb and zb.get("parallax_px") is not None:
             verdict = ("ZERO: no measurable parallax, every frame at one shared centre, no translation solved"
@@ -339,6 +345,14 @@ def _estimate_focal(capture: Capture, segments: Segments, config: Config, timing
         est = estimate_focal(segments, capture.R_wc_imu, capture.camera, config.focal, config.manhattan)
     result.focal = est
     capture = dataclasses.replace(capture, camera=with_focal(capture.camera, est.focal_px))
+    if config.points.enabled and config.focal.stitch_max_rms_px > 0:  # a turn about the camera: the point tracks
+        from .points import spin_focal                                  # as a stitcher's (points/stitch.py)
+
+        with stage("focal", timings):
+            st = spin_focal(capture, config.points, config.focal.stitch_max_rms_px)
+        result.focal_stitched = st
+        if st is not None and st.accepted:
+            capture = dataclasses.replace(capture, camera=with_focal(capture.camera, st.focal_px))
     result.capture = capture
     return capture
 
@@ -421,7 +435,7 @@ def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
         if points is not None and config.points.enabled and config.points.zero_baseline:
             result.points = points()
         return rotation_bundle_adjust(pre, result.tracks, result.linear, config.graph, points=result.points,
-                                      points_config=config.points)
+                                      points_config=config.points, focal_free=3 in config.graph.phases)
     if config.graph.incremental_batch:
         batches = bundle_adjust_incremental(pre, result.tracks, result.relations, result.linear,
                                             config.graph, on_batch=on_batch)
@@ -571,6 +585,8 @@ def _focal_summary(capture: Capture, result: RunResult, sol: Solution | None) ->
     if est is not None:
         out["estimated"] = {"focal_px": est.focal_px, "hfov_deg": est.hfov_deg, "cost": est.cost,
                             "sharpness": est.sharpness, "frames": est.frames, "segments": est.segments}
+    if result.focal_stitched is not None:
+        out["stitched"] = dataclasses.asdict(result.focal_stitched)
     return out
 
 

@@ -522,18 +522,21 @@ def _point_state(rng, n):
     return K, R, C, P, uv + rng.normal(0, 2.0, uv.shape)
 
 
-@pytest.mark.parametrize("seed,with_rot", [(0, False), (1, True), (2, True)])
-def test_point_projection_jacobians(seed, with_rot):
+@pytest.mark.parametrize("seed,with_rot,with_focal", [(0, False, False), (1, True, False), (2, True, False),
+                                                      (3, False, True), (4, True, True)])
+def test_point_projection_jacobians(seed, with_rot, with_focal):
     rng = np.random.default_rng(seed)
     K, R, C, P, uv = _point_state(rng, 1)
     v = gtsam.Values()
-    ck, pk, rk = gtsam.symbol("c", 0), gtsam.symbol("p", 0), gtsam.symbol("r", 0)
+    ck, pk, rk, fk = gtsam.symbol("c", 0), gtsam.symbol("p", 0), gtsam.symbol("r", 0), gtsam.symbol("f", 0)
     v.insert(ck, C[0])
     v.insert(pk, P[0])
     if with_rot:
         v.insert(rk, gtsam.Rot3(R[0]))
+    if with_focal:
+        v.insert(fk, np.array([1.03 * K[0, 0]]))
     f = factors.point_projection_factor(ck, pk, uv[0], K, UNIT(2, 1.0), R_wc=None if with_rot else R[0],
-                                        rotation_key=rk if with_rot else None)
+                                        rotation_key=rk if with_rot else None, focal_key=fk if with_focal else None)
     check_jacobians(f, v, eps=1e-6, rtol=1e-5, atol=1e-6)
     # semantics: the exact projection gives a zero residual
     exact, _ = factors.project_points(R, C, P, K)
@@ -573,3 +576,40 @@ def test_point_projection_set_equals_its_factors(robust):
         order.push_back(k)
     for a, b in zip(rep.linearize(v).hessian(order), g.linearize(v).hessian(order)):
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.abs(b).max())
+
+
+@pytest.mark.parametrize("robust", ["none", "huber"])
+def test_point_projection_set_with_focal_equals_its_factors(robust):
+    """With the focal as a variable (every rotation free) the set's split linearisation (3-key JacobianFactors and
+    the focal's cross terms) is the 4-key factors': same cost at a focal off K's, same information matrix."""
+    rng = np.random.default_rng(5)
+    n = 12
+    K, R, C, P, uv = _point_state(rng, n)
+    fk = gtsam.symbol("f", 0)
+    v = gtsam.Values()
+    ck = [gtsam.symbol("c", i % 4) for i in range(n)]
+    pk = [gtsam.symbol("p", i % 6) for i in range(n)]
+    rk = [gtsam.symbol("r", i % 4) for i in range(n)]
+    for i in range(4):
+        v.insert(ck[i], C[i])
+        v.insert(rk[i], gtsam.Rot3(R[i]))
+    for i in range(6):
+        v.insert(pk[i], P[i])
+    v.insert(fk, np.array([0.97 * K[0, 0]]))
+    R_obs = R[np.arange(n) % 4]
+    rep = factors.PointProjectionSet(ck, pk, uv, K, 0.8, R_obs, rotation_keys=rk, robust=robust, k=1.345,
+                                     focal_key=fk)
+    g = gtsam.NonlinearFactorGraph()
+    noise = factors.noise_model(2, 0.8, robust, 1.345)
+    for i in range(n):
+        g.add(factors.point_projection_factor(ck[i], pk[i], uv[i], K, noise, rotation_key=rk[i], focal_key=fk))
+    assert rep.error(v) == pytest.approx(g.error(v), rel=1e-12)
+    held = factors.PointProjectionSet(ck, pk, uv, K, 0.8, R_obs, rotation_keys=rk, robust=robust, k=1.345)
+    assert abs(held.error(v) - rep.error(v)) > 1e-3 * rep.error(v)  # the focal in the values counts
+    order = gtsam.Ordering()
+    for k in sorted(set(g.linearize(v).keys())):
+        order.push_back(k)
+    for a, b in zip(rep.linearize(v).hessian(order), g.linearize(v).hessian(order)):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9 * np.abs(b).max())
+    with pytest.raises(ValueError):
+        factors.PointProjectionSet(ck, pk, uv, K, 0.8, R_obs, rotation_keys=[None] + rk[1:], focal_key=fk)

@@ -39,10 +39,10 @@ import factors
 from ..config import GraphConfig, PointsConfig
 from ..data import LineModel, PointTracks, Preprocessed, Solution, Tracks
 from ..geometry import rotation_angle_deg, world_rays
-from .factor_graph import GAUGE_SIGMA, widened_robust_k
+from .factor_graph import FOCAL_PRIOR_FRAC, GAUGE_SIGMA, widened_robust_k
 from .lm import levenberg_marquardt
-from .problem import center_key, line_key, point_key, rotation_key
-from .readout import line_extents, track_extents
+from .problem import FOCAL_KEY, center_key, line_key, point_key, rotation_key
+from .readout import _camera_with_focal, line_extents, track_extents
 
 log = logging.getLogger("panosfm.graph")
 
@@ -65,7 +65,8 @@ def _initial_taylor(pre: Preprocessed, tracks: Tracks, K: np.ndarray, obs_seg: n
 
 
 def _bearing_set(points: PointTracks, R_wc: np.ndarray, K: np.ndarray, config: PointsConfig,
-                 graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, prior) -> factors.PointProjectionSet | None:
+                 graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, prior, focal_key: int | None = None
+                 ) -> factors.PointProjectionSet | None:
     """Returns the observations of the point tracks seen in ``points_config.min_frames`` frames as bearings
     (module docstring), each point inserted into ``values`` at ``ASSUMED_DISTANCE`` along the mean viewing ray of
     its observations at ``R_wc`` with the weak ``prior`` in ``graph``; None where no track is that long."""
@@ -84,7 +85,35 @@ def _bearing_set(points: PointTracks, R_wc: np.ndarray, K: np.ndarray, config: P
     return factors.PointProjectionSet([center_key(0)] * len(pt), [point_key(int(p)) for p in pt],
                                       points.xy[keep].astype(np.float64), K, config.sigma_px, R_wc[pf],
                                       rotation_keys=[rotation_key(int(i)) for i in pf], robust="huber",
-                                      k=config.robust_k)
+                                      k=config.robust_k, focal_key=focal_key)
+
+
+def _rotation_graph(pre: Preprocessed, R0: np.ndarray, taylor0: np.ndarray, lines: np.ndarray, config: GraphConfig
+                    ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, gtsam.noiseModel.Base]:
+    """Returns (graph, values, the lines' weak prior): a Rot3 per frame at ``R0``, the fixed centre, the lines at
+    ``taylor0`` with their weak priors, the rotation prior and the IMU's relative rotations (module docstring)."""
+    F = len(R0)
+    values = gtsam.Values()
+    for i in range(F):
+        values.insert(rotation_key(i), gtsam.Rot3(R0[i]))
+    values.insert(center_key(0), np.zeros(3))
+    for t in lines:
+        values.insert(line_key(int(t)), taylor0[t])
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.PriorFactorPoint3(center_key(0), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, GAUGE_SIGMA)))
+    line_prior = gtsam.noiseModel.Isotropic.Sigma(3, ASSUMED_DISTANCE)  # about a radian across the line
+    for t in lines:
+        graph.add(gtsam.PriorFactorPoint3(line_key(int(t)), taylor0[t], line_prior))
+    if config.rotation_prior_sigma_deg > 0:
+        noise = gtsam.noiseModel.Isotropic.Sigma(3, float(np.radians(config.rotation_prior_sigma_deg)))
+        for i in range(F):
+            graph.add(gtsam.PriorFactorRot3(rotation_key(i), gtsam.Rot3(R0[i]), noise))
+    if config.imu_prior:
+        noise = factors.imu_noise(config.imu_sigma_deg)
+        for i in range(F - 1):
+            graph.add(factors.imu_rotation_factor(rotation_key(i), rotation_key(i + 1), pre.R_wc_imu[i],
+                                                  pre.R_wc_imu[i + 1], noise))
+    return graph, values, line_prior
 
 
 def _fit_rms(line_rms: float, n_lines: int, bearings: factors.PointProjectionSet | None, values: gtsam.Values,
@@ -99,13 +128,14 @@ def _fit_rms(line_rms: float, n_lines: int, bearings: factors.PointProjectionSet
 
 
 def rotation_bundle_adjust(pre: Preprocessed, tracks: Tracks, initial: Solution, config: GraphConfig,
-                           points: PointTracks | None = None, points_config: PointsConfig = PointsConfig()
-                           ) -> Solution:
+                           points: PointTracks | None = None, points_config: PointsConfig = PointsConfig(),
+                           focal_free: bool = False) -> Solution:
     """Returns the zero-baseline solution with rotations refined by the lines (module docstring), centres at 0.
 
     ``initial``: the linear zero-translation solve (every frame registered, centres 0). The result keeps its
     registration and centres; ``residuals`` record the reprojection RMS before and after and how far the
-    rotations moved (from the preprocessed ones, degrees).
+    rotations moved (from the preprocessed ones, degrees). ``focal_free`` with point tracks: the focal length is a
+    variable too (the bearings of a whole turn fix it; ``residuals["focal_px"]`` before and after).
     """
     t0 = time.perf_counter()
     F = len(pre.R_wc)
@@ -129,33 +159,20 @@ def rotation_bundle_adjust(pre: Preprocessed, tracks: Tracks, initial: Solution,
     ep = pre.segments.endpoints[obs_seg].astype(np.float64)
     zeros = np.zeros((len(obs_seg), 3))
 
-    def rms(taylor: np.ndarray, R: np.ndarray) -> float:  # RMS segment-averaged reprojection distance (px)
+    def rms(taylor: np.ndarray, R: np.ndarray, K: np.ndarray = K) -> float:  # RMS segment-averaged distance (px)
         r = factors.reprojection_terms(ep, A[obs_track], taylor[obs_track], zeros, R[obs_frame], K)
         return float(np.sqrt(np.mean(np.sum(r ** 2, axis=1))))
 
     rms0 = rms(taylor0, R0)
 
-    values = gtsam.Values()
-    for i in range(F):
-        values.insert(rotation_key(i), gtsam.Rot3(R0[i]))
-    values.insert(center_key(0), np.zeros(3))
-    for t in lines:
-        values.insert(line_key(int(t)), taylor0[t])
-    graph = gtsam.NonlinearFactorGraph()
-    graph.add(gtsam.PriorFactorPoint3(center_key(0), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, GAUGE_SIGMA)))
-    line_prior = gtsam.noiseModel.Isotropic.Sigma(3, ASSUMED_DISTANCE)  # about a radian across the line
-    for t in lines:
-        graph.add(gtsam.PriorFactorPoint3(line_key(int(t)), taylor0[t], line_prior))
-    if config.rotation_prior_sigma_deg > 0:
-        noise = gtsam.noiseModel.Isotropic.Sigma(3, float(np.radians(config.rotation_prior_sigma_deg)))
-        for i in range(F):
-            graph.add(gtsam.PriorFactorRot3(rotation_key(i), gtsam.Rot3(R0[i]), noise))
-    if config.imu_prior:
-        noise = factors.imu_noise(config.imu_sigma_deg)
-        for i in range(F - 1):
-            graph.add(factors.imu_rotation_factor(rotation_key(i), rotation_key(i + 1), pre.R_wc_imu[i],
-                                                  pre.R_wc_imu[i + 1], noise))
-    bearings = _bearing_set(points, R0, K, points_config, graph, values, line_prior) if points is not None else None
+    graph, values, line_prior = _rotation_graph(pre, R0, taylor0, lines, config)
+    bearings = (_bearing_set(points, R0, K, points_config, graph, values, line_prior,
+                             FOCAL_KEY if focal_free else None) if points is not None else None)
+    focal = focal_free and bearings is not None
+    if focal:  # the focal length refined with the rotations (weak prior, as the bundle adjustment's phase 3)
+        values.insert(FOCAL_KEY, np.array([K[0, 0]]))
+        graph.add(gtsam.PriorFactorVector(FOCAL_KEY, np.array([K[0, 0]]),
+                                          gtsam.noiseModel.Isotropic.Sigma(1, FOCAL_PRIOR_FRAC * K[0, 0])))
     batches = [] if bearings is None else [bearings]
     if bearings is not None:
         res["point_tracks"], res["point_observations"] = len(set(bearings.point_keys)), len(bearings)
@@ -169,7 +186,7 @@ def rotation_bundle_adjust(pre: Preprocessed, tracks: Tracks, initial: Solution,
         rep = factors.LineReprojectionSet([line_key(int(t)) for t in obs_track], [center_key(0)] * len(obs_seg), ep,
                                           A[obs_track], K, config.reprojection_sigma_px,
                                           rotation_keys=[rotation_key(int(i)) for i in obs_frame], robust=robust,
-                                          k=k if k > 0 else 1.345)
+                                          k=k if k > 0 else 1.345, focal_key=FOCAL_KEY if focal else None)
         values, info = levenberg_marquardt(graph, values, max_iterations=config.max_iterations,
                                            batches=[rep] + batches)
     R = np.array([values.atRot3(rotation_key(i)).matrix() for i in range(F)])
@@ -177,7 +194,10 @@ def rotation_bundle_adjust(pre: Preprocessed, tracks: Tracks, initial: Solution,
     taylor = np.zeros((tracks.n, 3))
     raw = factors.taylor_from_point_direction(raw, A[lines])
     taylor[lines] = ASSUMED_DISTANCE * raw / np.maximum(np.linalg.norm(raw, axis=1, keepdims=True), 1e-12)
-    rms1 = rms(taylor, R)
+    camera = _camera_with_focal(initial.camera, values.atVector(FOCAL_KEY)[0]) if focal else initial.camera
+    if focal:
+        res["focal_px"] = [float(K[0, 0]), float(camera.K[0, 0])]  # before, after
+    rms1 = rms(taylor, R, camera.K)
     fit1 = _fit_rms(rms1, len(obs_seg), bearings, values, res, "point_rms")  # every observation's, as fit0
     moved = rotation_angle_deg(R, R0)
     res.update(reprojection_rms_initial=rms0, reprojection_rms=rms1, iterations=int(info.get("iterations", 0)),
@@ -189,7 +209,8 @@ def rotation_bundle_adjust(pre: Preprocessed, tracks: Tracks, initial: Solution,
         res["kept_preprocessed"] = True
         return _with(initial, res)
     extent = np.zeros((tracks.n, 2))
-    s = np.clip(line_extents(taylor[obs_track], A[obs_track], ep, R[obs_frame], zeros, K), -MAX_EXTENT, MAX_EXTENT)
+    s = np.clip(line_extents(taylor[obs_track], A[obs_track], ep, R[obs_frame], zeros, camera.K), -MAX_EXTENT,
+                MAX_EXTENT)
     lo_hi, ok = track_extents(s, obs_track, tracks.n)
     extent[ok] = lo_hi[ok]
     valid = np.zeros(tracks.n, bool)
@@ -199,8 +220,7 @@ def rotation_bundle_adjust(pre: Preprocessed, tracks: Tracks, initial: Solution,
     log.info("zero baseline: rotations refined by %d lines, reprojection %.2f -> %.2f px, moved %.2f deg "
              "(median) in %.1f s", len(lines), rms0, rms1, res["rotation_change_deg"]["median"], res["seconds"])
     return Solution(R_wc=R, centers=np.zeros((F, 3)), registered=np.ones(F, bool), lines=line_model,
-                    camera=initial.camera, metric=False, residuals=res,
-                    relations_kept=initial.relations_kept)
+                    camera=camera, metric=False, residuals=res, relations_kept=initial.relations_kept)
 
 
 def _with(initial: Solution, res: dict) -> Solution:
