@@ -46,7 +46,7 @@ STAGE_SOURCES: dict[str, tuple[str, ...]] = {
     "normals": ("panosfm_graph.normals",),
     "relations": ("panosfm_graph.relations",),
     "linear": ("panosfm_graph.linear", "factors"),
-    "points": ("panosfm_graph.points",),
+    "points": ("panosfm_graph.points", "panosfm_graph.graph", "factors"),  # points.stitch fits with graph's LM
     "bundle_adjust": ("panosfm_graph.graph", "factors", "panosfm_graph.config"),  # graph uses config.SPIN_STYLES
 }
 

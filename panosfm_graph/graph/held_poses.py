@@ -15,14 +15,13 @@ import dataclasses
 import logging
 import time
 
-import gtsam
 import numpy as np
 
 from ..config import GraphConfig
 from ..data import FLOOR, Preprocessed, Relations, Solution, Tracks
 from .factor_graph import _build_graph
 from .lm import levenberg_marquardt
-from .problem import FLOOR_KEY, _select, center_key, line_key
+from .problem import FLOOR_KEY, _select, initial_values
 from .readout import _reprojection_rms, _solution
 from .scale import _gauge
 
@@ -40,11 +39,7 @@ def adjust_lines_at_poses(pre: Preprocessed, tracks: Tracks, relations: Relation
     prob = _select(pre, tracks, relations, sol, cfg)
     if not len(prob.lines):
         return sol
-    values = gtsam.Values()
-    for i in prob.frames:
-        values.insert(center_key(i), np.asarray(sol.centers[i], dtype=np.float64))
-    for t in prob.lines:
-        values.insert(line_key(t), np.asarray(sol.lines.taylor[t], dtype=np.float64))
+    values = initial_values(prob, sol)
     gauge = _gauge(relations, prob, sol, pre.manhattan.directions)
     gauge["use_floor"] = bool(np.any(relations.kind[prob.rel_idx] == FLOOR))
     gauge["held_centers"] = sol.centers

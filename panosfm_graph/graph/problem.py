@@ -100,6 +100,16 @@ def _select(pre: Preprocessed, tracks: Tracks, relations: Relations, initial: So
                     directions=directions, rel_idx=rel_idx)
 
 
+def initial_values(prob: _Problem, sol: Solution) -> gtsam.Values:
+    """Returns the problem's centres and Taylor vectors at ``sol``'s values."""
+    values = gtsam.Values()
+    for i in prob.frames:
+        values.insert(center_key(i), np.asarray(sol.centers[i], dtype=np.float64))
+    for t in prob.lines:
+        values.insert(line_key(t), np.asarray(sol.lines.taylor[t], dtype=np.float64))
+    return values
+
+
 def floor_held_scale(initial: Solution) -> bool:
     """Returns whether ``initial``'s scale rests on floor relations (metric or camera-to-floor = 1).
 

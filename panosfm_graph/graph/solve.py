@@ -22,8 +22,8 @@ from ..geometry import turned_degrees
 from .determinacy import _mark_undetermined, _verify_relations, focal_sigma
 from .factor_graph import _build_graph
 from .lm import levenberg_marquardt
-from .problem import (ARM_KEY, DRIFT_KEY, FLOOR_KEY, FOCAL_KEY, _select, center_key, line_key, relation_residuals,
-                      relation_sigmas, rotation_key, stand_key)
+from .problem import (ARM_KEY, DRIFT_KEY, FLOOR_KEY, FOCAL_KEY, _select, initial_values, line_key,
+                      relation_residuals, relation_sigmas, rotation_key, stand_key)
 from .readout import _camera_with_focal, _read_points, _reprojection_rms, _solution
 from .scale import _floor_below_lines, _gauge, _keep_camera_height, _scaled
 from .spin import _check_arm, _check_steady, fit_spin, spin_arm_length
@@ -140,11 +140,7 @@ def _bundle_adjust_once(pre: Preprocessed, tracks: Tracks, relations: Relations,
     R_wc = np.where(initial.registered[:, None, None], initial.R_wc, np.nan)
     if not np.all(np.isfinite(initial.R_wc[initial.registered])):
         raise ValueError("initial solution has non-finite rotations for registered frames")
-    values = gtsam.Values()
-    for i in prob.frames:
-        values.insert(center_key(i), np.asarray(initial.centers[i], dtype=np.float64))
-    for t in prob.lines:
-        values.insert(line_key(t), np.asarray(initial.lines.taylor[t], dtype=np.float64))
+    values = initial_values(prob, initial)
     gauge = _gauge(relations, prob, initial, pre.manhattan.directions)
     if config.spin_sigma_m > 0 and len(prob.frames) >= 3:
         knots = factors.spin_knots(turned_degrees(pre.R_wc)[prob.frames], config.spin_knot_deg)
