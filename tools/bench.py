@@ -11,8 +11,9 @@ frames (the exponent b of seconds ~ frames^b, fitted over the speeds).
 For each scene (and each of ``--seeds`` captures of it: the single-capture results of this
 pipeline swing a lot with small changes, so compare settings over several): synthesise a
 capture (cached in ``OUT/captures``), run
-panosfm with the camera height given, run the peer (``--peer`` incremental
-and/or global), score everything with ``evaluate_reconstruction``, and write
+panosfm with the camera height given, run the peer (``--peer`` incremental,
+global and/or global-gravity, i.e. GLOMAP given the IMU's gravity per image:
+``tools/peer_colmap.py``), score everything with ``evaluate_reconstruction``, and write
 ``bench.json`` and ``bench.md`` (metrics, seconds per stage, peak memory; with several
 seeds also the median over them per scene and method). ``--set`` passes pipeline settings to
 ``panosfm run``. Each panosfm run is a fresh subprocess so peak memory is per run.
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import importlib.util
 import json
 import os
 import platform
@@ -261,7 +263,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--reuse-peer", action="store_true",
                    help="reuse a peer reconstruction already in OUT/runs (same capture, same settings)")
     p.add_argument("--peer", default="auto", help="'auto' (incremental if pycolmap is installed), 'none', "
-                   "or a comma list of incremental,global")
+                   "or a comma list of incremental,global,global-gravity (GLOMAP with IMU gravity priors); "
+                   "each is tabulated as colmap-MAPPER")
     p.add_argument("--resume", action="store_true",
                    help="reuse the cached stages of earlier runs in OUT (copy a runs/ folder there): fast setting "
                         "sweeps; seconds then no longer measure the whole pipeline")
@@ -279,11 +282,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     w, h = (int(v) for v in args.size.lower().split("x"))
     if args.peer == "auto":
-        try:
-            import pycolmap  # noqa: F401
-            peers = ["incremental"]
-        except ImportError:
-            peers = []
+        peers = ["incremental"] if importlib.util.find_spec("pycolmap") is not None else []
     elif args.peer == "none":
         peers = []
     else:
