@@ -47,7 +47,7 @@ def adjust_lines_at_poses(pre: Preprocessed, tracks: Tracks, relations: Relation
         values.insert(FLOOR_KEY, np.array([gauge["floor_h"]]))
     K = sol.camera.K
     rms0 = _reprojection_rms(pre, prob, sol.lines.taylor, sol.R_wc, sol.centers, K)
-    rel_mask = np.ones(len(prob.rel_idx), bool)  # every relation the bundle adjustment kept (_select)
+    rel_mask = np.ones(len(prob.rel_idx), bool)  # every relation the bundle adjustment kept (_select): no rounds
     # phase 1's factors (the rotations fixed), solved twice: with the reprojection kernel widened to the lines'
     # initial residuals (the lines the bundle adjustment fitted to other poses start far off), then at its threshold
     for widened in (True, False):
@@ -60,8 +60,8 @@ def adjust_lines_at_poses(pre: Preprocessed, tracks: Tracks, relations: Relation
     out = _solution(pre, tracks, sol, prob, values, sol.R_wc, sol.camera, dict(sol.residuals))
     out = dataclasses.replace(out, centers=sol.centers.copy(), registered=sol.registered.copy())
     kept = np.zeros(relations.n, bool)
-    kept[prob.rel_idx[rel_mask]] = True
-    record = {"lines": int(len(prob.lines)), "relations": int(rel_mask.sum()),
+    kept[prob.rel_idx] = True
+    record = {"lines": int(len(prob.lines)), "relations": int(len(prob.rel_idx)),
               "reprojection_rms_px": [rms0, _reprojection_rms(pre, prob, out.lines.taylor, sol.R_wc, sol.centers, K)],
               "seconds": round(time.perf_counter() - t0, 3)}
     out.residuals["lines_held_poses"] = record

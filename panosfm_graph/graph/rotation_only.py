@@ -64,12 +64,14 @@ def _initial_taylor(pre: Preprocessed, tracks: Tracks, K: np.ndarray, obs_seg: n
     return ASSUMED_DISTANCE * mean / np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
 
 
-def _bearing_set(points: PointTracks, R_wc: np.ndarray, K: np.ndarray, config: PointsConfig,
+def bearing_set(points: PointTracks, R_wc: np.ndarray, K: np.ndarray, config: PointsConfig,
                  graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, prior, focal_key: int | None = None
                  ) -> factors.PointProjectionSet | None:
-    """Returns the observations of the point tracks seen in ``points_config.min_frames`` frames as bearings
+    """Returns the observations of the point tracks seen in ``config.min_frames`` frames as bearings
     (module docstring), each point inserted into ``values`` at ``ASSUMED_DISTANCE`` along the mean viewing ray of
-    its observations at ``R_wc`` with the weak ``prior`` in ``graph``; None where no track is that long."""
+    its observations at ``R_wc`` with the weak ``prior`` in ``graph``, each frame's rotation ``r<i>`` and the
+    one centre ``c0`` variables (and the focal length ``focal_key`` where given); None where no track is that long
+    (also :func:`panosfm_graph.points.stitched_focal`'s)."""
     t = points.track.astype(np.int64)
     keep = np.bincount(t, minlength=points.n)[t] >= config.min_frames
     if not keep.any():
@@ -166,7 +168,7 @@ def rotation_bundle_adjust(pre: Preprocessed, tracks: Tracks, initial: Solution,
     rms0 = rms(taylor0, R0)
 
     graph, values, line_prior = _rotation_graph(pre, R0, taylor0, lines, config)
-    bearings = (_bearing_set(points, R0, K, points_config, graph, values, line_prior,
+    bearings = (bearing_set(points, R0, K, points_config, graph, values, line_prior,
                              FOCAL_KEY if focal_free else None) if points is not None else None)
     focal = focal_free and bearings is not None
     if focal:  # the focal length refined with the rotations (weak prior, as the bundle adjustment's phase 3)

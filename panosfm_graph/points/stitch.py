@@ -24,12 +24,11 @@ import factors
 
 from ..config import PointsConfig
 from ..data import Capture, PointTracks
-from ..geometry import world_rays
 
 GAUGE_SIGMA_DEG = 5.0  # each frame held towards the IMU's attitude this loosely: the gauge and the IMU's drift
 IMU_SIGMA_DEG = 1.0  # the IMU's relative rotation between neighbours, loosely: the corners decide
 FOCAL_PRIOR_FRAC = 0.25  # the focal's weak prior about its start (sigma, share of it)
-POINT_PRIOR = 1.0  # a bearing's weak prior (unit distance: about a radian)
+POINT_PRIOR = 1.0  # a bearing's weak prior (at graph.rotation_only.ASSUMED_DISTANCE, 1: about a radian)
 MAX_FRAMES = 90  # the spin's frames are taken every k-th, at most this many: a turn's closure fixes the focal length
 
 
@@ -51,20 +50,16 @@ def stitched_focal(points: PointTracks, R_wc_imu: np.ndarray, K: np.ndarray, con
     """Returns the focal length (fx; fy keeps K's aspect) the point tracks give as bearings about one centre
     (module docstring), started from ``K``'s; None without point tracks seen in ``config.min_frames`` frames."""
     from ..graph.lm import levenberg_marquardt
-    from ..graph.problem import FOCAL_KEY, center_key, point_key, rotation_key
+    from ..graph.problem import FOCAL_KEY, center_key, rotation_key
+    from ..graph.rotation_only import bearing_set
 
     t0 = time.perf_counter()
-    t = points.track.astype(np.int64)
-    keep = np.bincount(t, minlength=points.n)[t] >= config.min_frames
-    if not keep.any():
-        return None
     F = len(R_wc_imu)
-    f = points.frame.astype(np.int64)
-    ray = world_rays(K, R_wc_imu[f], points.xy.astype(np.float64))
-    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
-    mean = np.stack([np.bincount(t[keep], ray[keep, k], minlength=points.n) for k in range(3)], axis=1)
-    bearing = mean / np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
     values, graph = gtsam.Values(), gtsam.NonlinearFactorGraph()
+    obs = bearing_set(points, R_wc_imu, K, config, graph, values, gtsam.noiseModel.Isotropic.Sigma(3, POINT_PRIOR),
+                      FOCAL_KEY)
+    if obs is None:
+        return None
     gauge = gtsam.noiseModel.Isotropic.Sigma(3, np.radians(GAUGE_SIGMA_DEG))
     for i in range(F):
         values.insert(rotation_key(i), gtsam.Rot3(R_wc_imu[i]))
@@ -74,24 +69,15 @@ def stitched_focal(points: PointTracks, R_wc_imu: np.ndarray, K: np.ndarray, con
         graph.add(factors.imu_rotation_factor(rotation_key(i), rotation_key(i + 1), R_wc_imu[i], R_wc_imu[i + 1], imu))
     values.insert(center_key(0), np.zeros(3))
     graph.add(gtsam.PriorFactorPoint3(center_key(0), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)))
-    prior = gtsam.noiseModel.Isotropic.Sigma(3, POINT_PRIOR)
-    for p in np.unique(t[keep]):
-        values.insert(point_key(int(p)), bearing[p])
-        graph.add(gtsam.PriorFactorPoint3(point_key(int(p)), bearing[p], prior))
     f0 = float(K[0, 0])
     values.insert(FOCAL_KEY, np.array([f0]))
     graph.add(gtsam.PriorFactorVector(FOCAL_KEY, np.array([f0]), gtsam.noiseModel.Isotropic.Sigma(
         1, FOCAL_PRIOR_FRAC * f0)))
-    pk, fk = t[keep], f[keep]
-    obs = factors.PointProjectionSet([center_key(0)] * len(pk), [point_key(int(p)) for p in pk],
-                                     points.xy[keep].astype(np.float64), K, config.sigma_px, R_wc_imu[fk],
-                                     rotation_keys=[rotation_key(int(i)) for i in fk], robust="huber",
-                                     k=config.robust_k, focal_key=FOCAL_KEY)
     values, _ = levenberg_marquardt(graph, values, iterations, batches=[obs])
     rms = float(np.sqrt(np.mean(np.sum(obs.residuals(values) ** 2, axis=1))))
     fx = float(values.atVector(FOCAL_KEY)[0])
-    return StitchedFocal(focal_px=fx, start_px=f0, rms_px=rms, tracks=int(len(np.unique(pk))),
-                         observations=int(len(pk)), accepted=bool(rms <= max_rms_px),
+    return StitchedFocal(focal_px=fx, start_px=f0, rms_px=rms, tracks=len(set(obs.point_keys)),
+                         observations=len(obs), accepted=bool(rms <= max_rms_px),
                          seconds=round(time.perf_counter() - t0, 3))
 
 
