@@ -68,8 +68,12 @@ class FocalConfig:
     truncate_px: float = 2.0  # cost: each segment's end-point distance (px) from its vanishing point's line, truncated here
     min_sharpness: float = 1.01  # the cost 5 % off the estimate less than this many times higher: a warning
     # then the point tracks as bearings about one centre (points/stitch.py): their focal length is taken where they
-    # fit within this RMS (px): a turn about the camera (0: off); see docs/decisions.md#stitched-focal-length
-    stitch_max_rms_px: float = 1.0
+    # fit within this (px, 90th percentile of the corners): a turn about the camera (0: off); see
+    # docs/decisions.md#stitched-focal-length
+    stitch_max_p90_px: float = 1.0
+    # where they do not (parallax), the same tracks with the camera on the spin's circle, focal free, taken within
+    # the same bound; see docs/decisions.md#focal-on-an-arm
+    stitch_arm: bool = True
 
 
 @dataclass(frozen=True)
@@ -387,6 +391,9 @@ class GraphConfig:
     # the poses held: reprojection, colinearity and the kept coplanarity relations (False: triangulated only); see
     # docs/decisions.md#lines-at-held-poses
     lines_held_poses: bool = True
+    # the bundle adjustment solved once more with the point tracks joined (graph/joint_points.py), kept unless the
+    # lines' RMS reprojection grows more than this ratio (0: off); see docs/decisions.md#points-in-the-bundle-adjustment
+    points_joint_max_line_rms_ratio: float = 2.0
     # metric scale: the floor moves down to the deepest horizontal line seen in at least this many frames (0: off);
     # see docs/decisions.md#floor-below-lines
     floor_below_lines_min_obs: int = 3

@@ -107,9 +107,12 @@ class RunResult:
                          f"Manhattan vanishing points{refined}")
             st = foc.get("stitched")
             if st:
-                verdict = "taken" if st["accepted"] else "not taken: the spin has parallax"
-                lines.append(f"              {st['focal_px']:.1f} px from {st['tracks']} point tracks as bearings "
-                             f"about one centre (RMS {st['rms_px']:.2f} px; {verdict})")
+                arm = st.get("model") == "arm"
+                verdict = "taken" if st["accepted"] else ("not taken" if arm else "not taken: the spin has parallax")
+                how = (f"with the camera on the spin's circle (as bearings about one centre: 90 % within "
+                       f"{st['centre_p90_px']:.2f} px, parallax)" if arm else "as bearings about one centre")
+                lines.append(f"              {st['focal_px']:.1f} px from {st['tracks']} point tracks {how} "
+                             f"(90 % within {st['p90_px']:.2f} px; {verdict})")
         zb = s.get("zero_baseline")
         if zb and zb.get("parallax_px") is not None:
             verdict = ("ZERO: no measurable parallax, every frame at one shared centre, no translation solved"
@@ -345,11 +348,12 @@ def _estimate_focal(capture: Capture, segments: Segments, config: Config, timing
         est = estimate_focal(segments, capture.R_wc_imu, capture.camera, config.focal, config.manhattan)
     result.focal = est
     capture = dataclasses.replace(capture, camera=with_focal(capture.camera, est.focal_px))
-    if config.points.enabled and config.focal.stitch_max_rms_px > 0:  # a turn about the camera: the point tracks
+    if config.points.enabled and config.focal.stitch_max_p90_px > 0:  # a turn about the camera: the point tracks
         from .points import spin_focal                                  # as a stitcher's (points/stitch.py)
 
         with stage("focal", timings):
-            st = spin_focal(capture, config.points, config.focal.stitch_max_rms_px)
+            st = spin_focal(capture, config.points, config.focal.stitch_max_p90_px,
+                            graph_config=config.graph if config.focal.stitch_arm else None)
         result.focal_stitched = st
         if st is not None and st.accepted:
             capture = dataclasses.replace(capture, camera=with_focal(capture.camera, st.focal_px))
@@ -404,13 +408,18 @@ def _linear(capture: Capture, pre: Preprocessed, tracks: Tracks, relations: Rela
 def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
                    on_batch: Callable[[int, Solution], None] | None,
                    points: Callable[[], PointTracks] | None = None) -> Solution:
-    from .graph import (bundle_adjust, bundle_adjust_incremental, place_by_motion_model, solve_at_final_scale,
-                        steady_or_hand_held)
+    from .graph import (adjust_with_points, bundle_adjust, bundle_adjust_incremental, place_by_motion_model,
+                        solve_at_final_scale, steady_or_hand_held)
 
     def place(sol: Solution) -> Solution:
-        """The frames the lines leave without a pose, placed by the spin's motion model and the point tracks
-        where the std is small enough (the points are tracked only when there are such frames)."""
-        if points is not None and config.points.enabled and config.graph.motion_model and not sol.registered.all():
+        """The bundle adjustment with the point tracks joined (graph/joint_points.py), then the frames the lines
+        leave without a pose placed by the spin's motion model and the point tracks where the std is small enough."""
+        with_points = points is not None and config.points.enabled
+        if with_points and config.graph.points_joint_max_line_rms_ratio > 0 and sol.registered.sum() >= 2:
+            result.points = points()
+            sol = adjust_with_points(pre, result.tracks, result.relations, sol, result.points, config.graph,
+                                     config.points)
+        if with_points and result.points is None and config.graph.motion_model and not sol.registered.all():
             result.points = points()
         return place_by_motion_model(pre, result.tracks, sol, config.graph, points=result.points,
                                      points_config=config.points, relations=result.relations)

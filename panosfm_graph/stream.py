@@ -46,8 +46,9 @@ class Reconstruction:
     """A reconstruction that grows as frames arrive (module docstring; paper §3 per batch).
 
     ``camera`` is at the working resolution of the images passed in. ``reader`` (index -> BGR image)
-    gives old frames back where a stage needs them (the ``model`` normals); without it the images
-    are kept in memory for that source only. ``frame_names``, ``root`` and ``ground_truth`` (all
+    gives old frames back where a stage needs them (the ``model`` normals, the point tracks the final solve
+    joins to the bundle adjustment); without it the images are kept in memory for the ``model`` normals only,
+    and the final solve goes without the point tracks. ``frame_names``, ``root`` and ``ground_truth`` (all
     frames) describe a capture on disk (``oracle`` normals need the ground truth).
     ``thumbnail_width``: keep each frame's JPEG thumbnail (the rerun timeline).
     ``estimate_focal``: the focal length from the Manhattan vanishing points of the first batch
@@ -239,7 +240,7 @@ class Reconstruction:
         """
         from .lines import refine_manhattan_and_rotations, refine_warm, track_lines
         from .linear import solve_linear
-        from .pipeline import RunResult, _bundle_adjust
+        from .pipeline import RunResult, _bundle_adjust, _points
         from .relations import detect_relations
 
         cfg = self.config
@@ -268,8 +269,10 @@ class Reconstruction:
             linear = solve_linear(pre, tracks, relations, cap.camera, cfg.linear)
         held = RunResult(out_dir=self._root, summary={}, capture=cap, preprocessed=pre, tracks=tracks,
                          relations=relations, linear=linear)
+        # the final solve joins the point tracks as one-shot does, where the old frames can be read again
+        points = (lambda: _points(cap, pre, cfg)) if full and (self._reader is not None or self._keep_images) else None
         with stage("bundle_adjust", timings):
-            sol = _bundle_adjust(pre, held, cfg, None)
+            sol = _bundle_adjust(pre, held, cfg, None, points)
         self.preprocessed, self.tracks, self.relations, self.linear, self.solution = pre, tracks, relations, linear, sol
         return sol
 

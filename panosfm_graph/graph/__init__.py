@@ -98,12 +98,14 @@ Layout (one job per module; the package re-exports the names other modules use):
 * :mod:`.style`         :func:`steady_or_hand_held`, the spin style chosen after the hand-held solve;
 * :mod:`.motion_model`  :func:`place_by_motion_model`, the frames the lines leave without a pose placed by the spin
   model and the point tracks (:mod:`panosfm_graph.points`), with their std (issue #40);
-* :mod:`.held_poses`    :func:`adjust_lines_at_poses`, the lines adjusted with the poses held and the relations.
+* :mod:`.held_poses`    :func:`adjust_lines_at_poses`, the lines adjusted with the poses held and the relations;
+* :mod:`.joint_points`  :func:`adjust_with_points`, the bundle adjustment solved again with the point tracks joined.
 """
 from __future__ import annotations
 
 from .determinacy import determinacy, focal_sigma
 from .held_poses import adjust_lines_at_poses
+from .joint_points import adjust_with_points
 from .factor_graph import CHUNK_OBS, FOCAL_PRIOR_FRAC, GAUGE_SIGMA
 from .lm import levenberg_marquardt
 from .motion_model import place_by_motion_model
@@ -118,7 +120,7 @@ from .style import steady_or_hand_held
 
 __all__ = [
     "ARM_KEY", "CHUNK_OBS", "DRIFT_KEY", "FLOOR_KEY", "FOCAL_KEY", "FOCAL_PRIOR_FRAC", "GAUGE_SIGMA", "MAX_REJECT_ROUNDS",
-    "adjust_lines_at_poses", "bundle_adjust", "bundle_adjust_incremental", "center_key", "determinacy", "fit_spin", "floor_held_scale",
+    "adjust_lines_at_poses", "adjust_with_points", "bundle_adjust", "bundle_adjust_incremental", "center_key", "determinacy", "fit_spin", "floor_held_scale",
     "focal_sigma", "levenberg_marquardt", "line_extents", "line_key", "place_by_motion_model", "relation_residuals", "relation_sigmas",
     "rotation_bundle_adjust", "rotation_key", "solve_at_final_scale", "spin_arm_length", "spin_fit", "stand_key",
     "steady_or_hand_held",

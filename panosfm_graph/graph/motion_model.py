@@ -336,16 +336,17 @@ def _spin_graph(sol: Solution, centers0: np.ndarray, fixed: np.ndarray, todo: np
     return graph, values
 
 
-def _solve_rejecting_points(graph, values, batches: list, n_pts: np.ndarray, config: PointsConfig
+def _solve_rejecting_points(graph, values, batches: list, n_pts: np.ndarray, config: PointsConfig, extra: list = ()
                             ) -> tuple[gtsam.Values, list, np.ndarray, int]:
-    """Returns (the solution, the batches and (F,) point observations per frame left, point tracks dropped).
+    """Returns (the solution, the batches and (F,) point observations per frame left, point tracks dropped);
+    ``batches``: the point set or none, ``extra``: other batches solved with it (:func:`levenberg_marquardt`'s).
 
     Solves, then drops the point tracks whose RMS residual exceeds ``points.reject_px`` and solves again from there,
     at most ``points.reject_rounds`` times: a corner where a near edge crosses a far one (a T-junction) slides
     with the parallax and follows no 3D point; measured, office seed 2 swaying: 22 % of the observations of
     frames 75-104 over 1 px off with the true poses, and the placed stretch 7 % of the diameter off before
     (docs/decisions.md#point-tracks)."""
-    result, _ = levenberg_marquardt(graph, values, max_iterations=50, batches=batches)
+    result, _ = levenberg_marquardt(graph, values, max_iterations=50, batches=list(extra) + batches)
     dropped = 0
     for _ in range(config.reject_rounds if batches else 0):
         pset = batches[0]
@@ -361,7 +362,7 @@ def _solve_rejecting_points(graph, values, batches: list, n_pts: np.ndarray, con
         for key in gone - kept_points:
             result.erase(key)
         batches = [pset] if len(pset) else []
-        result, _ = levenberg_marquardt(graph, result, max_iterations=50, batches=batches)
+        result, _ = levenberg_marquardt(graph, result, max_iterations=50, batches=list(extra) + batches)
     return result, batches, n_pts, dropped
 
 

@@ -65,26 +65,36 @@ def _initial_taylor(pre: Preprocessed, tracks: Tracks, K: np.ndarray, obs_seg: n
 
 
 def bearing_set(points: PointTracks, R_wc: np.ndarray, K: np.ndarray, config: PointsConfig,
-                 graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, prior, focal_key: int | None = None
+                 graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, prior, focal_key: int | None = None,
+                 centers: np.ndarray | None = None, depth: float = ASSUMED_DISTANCE
                  ) -> factors.PointProjectionSet | None:
     """Returns the observations of the point tracks seen in ``config.min_frames`` frames as bearings
     (module docstring), each point inserted into ``values`` at ``ASSUMED_DISTANCE`` along the mean viewing ray of
     its observations at ``R_wc`` with the weak ``prior`` in ``graph``, each frame's rotation ``r<i>`` and the
     one centre ``c0`` variables (and the focal length ``focal_key`` where given); None where no track is that long
-    (also :func:`panosfm_graph.points.stitched_focal`'s)."""
+    (also :func:`panosfm_graph.points.stitched_focal`'s). With ``centers`` (F, 3) each frame is seen from its own
+    centre ``c<i>`` instead, each point starts ``depth`` along its mean ray from the mean of its frames' centres,
+    and ``prior`` may be None (no prior: :func:`panosfm_graph.points.arm_focal`'s)."""
     t = points.track.astype(np.int64)
-    keep = np.bincount(t, minlength=points.n)[t] >= config.min_frames
+    n_obs = np.bincount(t, minlength=points.n)
+    keep = n_obs[t] >= config.min_frames
     if not keep.any():
         return None
     ray = world_rays(K, R_wc[points.frame], points.xy.astype(np.float64))
     ray /= np.linalg.norm(ray, axis=1, keepdims=True)
     mean = np.stack([np.bincount(t, ray[:, k], minlength=points.n) for k in range(3)], axis=1)
-    bearing = ASSUMED_DISTANCE * mean / np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
+    bearing = depth * mean / np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
+    if centers is not None:
+        C = np.asarray(centers, dtype=np.float64)[points.frame]
+        bearing += np.stack([np.bincount(t, C[:, k], minlength=points.n) for k in range(3)], axis=1) / np.maximum(
+            n_obs, 1)[:, None]
     pt, pf = t[keep], points.frame[keep].astype(np.int64)
     for p in np.unique(pt):
         values.insert(point_key(int(p)), bearing[p])
-        graph.add(gtsam.PriorFactorPoint3(point_key(int(p)), bearing[p], prior))
-    return factors.PointProjectionSet([center_key(0)] * len(pt), [point_key(int(p)) for p in pt],
+        if prior is not None:
+            graph.add(gtsam.PriorFactorPoint3(point_key(int(p)), bearing[p], prior))
+    center_keys = [center_key(0)] * len(pt) if centers is None else [center_key(int(i)) for i in pf]
+    return factors.PointProjectionSet(center_keys, [point_key(int(p)) for p in pt],
                                       points.xy[keep].astype(np.float64), K, config.sigma_px, R_wc[pf],
                                       rotation_keys=[rotation_key(int(i)) for i in pf], robust="huber",
                                       k=config.robust_k, focal_key=focal_key)

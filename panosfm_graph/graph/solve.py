@@ -142,14 +142,7 @@ def _bundle_adjust_once(pre: Preprocessed, tracks: Tracks, relations: Relations,
         raise ValueError("initial solution has non-finite rotations for registered frames")
     values = initial_values(prob, initial)
     gauge = _gauge(relations, prob, initial, pre.manhattan.directions)
-    if config.spin_sigma_m > 0 and len(prob.frames) >= 3:
-        knots = factors.spin_knots(turned_degrees(pre.R_wc)[prob.frames], config.spin_knot_deg)
-        stand, arm, _ = fit_spin(initial.centers[prob.frames], R_wc[prob.frames][:, :, 2], pre.manhattan.directions,
-                              *knots, walk_weight=config.spin_sigma_m / config.spin_walk_sigma_m)
-        for jj, p in enumerate(stand):
-            values.insert(stand_key(jj), p)
-        values.insert(ARM_KEY, arm)
-        gauge["spin"] = knots
+    _insert_spin(pre, prob, initial.centers, R_wc, config, values, gauge)
     gauge["R_prior"] = {int(i): gtsam.Rot3(_orthonormal(R_wc[i])) for i in prob.rot_frames}
     residuals: dict = {"phases": {}, "factors": {}}
     rel_mask = np.ones(len(prob.rel_idx), bool)
@@ -244,6 +237,20 @@ def _bundle_adjust_once(pre: Preprocessed, tracks: Tracks, relations: Relations,
     r["scale_vs_initial"] = (float(r.get("height_rescale", 1.0)) / float(r.get("floor_lowered_by", 1.0))
                              * float(r.get("scale_from_arm", 1.0)))
     return sol
+
+
+def _insert_spin(pre: Preprocessed, prob, centers: np.ndarray, R_wc: np.ndarray, config: GraphConfig,
+                 values: gtsam.Values, gauge: dict) -> None:
+    """Inserts the spin prior's stand-point knots and arm, fitted to ``centers`` of the problem's frames, into
+    ``values`` and its knots into ``gauge["spin"]`` (``graph.spin_sigma_m`` > 0 and at least 3 frames)."""
+    if config.spin_sigma_m > 0 and len(prob.frames) >= 3:
+        knots = factors.spin_knots(turned_degrees(pre.R_wc)[prob.frames], config.spin_knot_deg)
+        stand, arm, _ = fit_spin(centers[prob.frames], R_wc[prob.frames][:, :, 2], pre.manhattan.directions,
+                                 *knots, walk_weight=config.spin_sigma_m / config.spin_walk_sigma_m)
+        for jj, p in enumerate(stand):
+            values.insert(stand_key(jj), p)
+        values.insert(ARM_KEY, arm)
+        gauge["spin"] = knots
 
 
 def _orthonormal(R: np.ndarray) -> np.ndarray:
