@@ -62,7 +62,8 @@ def _add_config_flags(p: argparse.ArgumentParser) -> None:
                         "stays put: frames between two fixed ones are placed on the circle) or auto (default: "
                         "hand-held, then steady where the camera centres lie on one circle)")
     g.add_argument("--strict", action="store_true", default=None,
-                   help="output only the frames the lines fix (no frame placed by the spin's motion model)")
+                   help="output only the frames the lines fix, at the lines' poses (no frame placed by the spin's "
+                        "motion model, no point tracks in the bundle adjustment)")
     g.add_argument("--incremental", type=int, default=None, metavar="N",
                    help="stream the capture N frames at a time: an estimate after each batch, the last solved in "
                         "full (--set graph.incremental_final_solve=False: as the others)")
@@ -151,6 +152,7 @@ def config_from_args(args: argparse.Namespace, base: Config | None = None) -> Co
     put("graph", "incremental_batch", getattr(args, "incremental", None))
     put("focal", "estimate", getattr(args, "estimate_focal", None))
     put("graph", "motion_model", False if getattr(args, "strict", None) else None)
+    put("graph", "points_joint_max_line_rms_ratio", 0.0 if getattr(args, "strict", None) else None)
     for item in getattr(args, "set", []) or []:
         if "=" not in item or "." not in item.split("=", 1)[0]:
             raise InputError(f"--set {item!r}: expected SECTION.FIELD=VALUE")

@@ -412,17 +412,16 @@ def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
                         solve_at_final_scale, steady_or_hand_held)
 
     def place(sol: Solution) -> Solution:
-        """The bundle adjustment with the point tracks joined (graph/joint_points.py), then the frames the lines
-        leave without a pose placed by the spin's motion model and the point tracks where the std is small enough."""
+        """The frames the lines leave without a pose placed by the spin's motion model and the point tracks where
+        the std is small enough, then the bundle adjustment with the point tracks joined (graph/joint_points.py)."""
         with_points = points is not None and config.points.enabled
-        if with_points and config.graph.points_joint_max_line_rms_ratio > 0 and sol.registered.sum() >= 2:
+        joint = with_points and config.graph.points_joint_max_line_rms_ratio > 0
+        if with_points and (joint or (config.graph.motion_model and not sol.registered.all())):
             result.points = points()
-            sol = adjust_with_points(pre, result.tracks, result.relations, sol, result.points, config.graph,
-                                     config.points)
-        if with_points and result.points is None and config.graph.motion_model and not sol.registered.all():
-            result.points = points()
-        return place_by_motion_model(pre, result.tracks, sol, config.graph, points=result.points,
-                                     points_config=config.points, relations=result.relations)
+        sol = place_by_motion_model(pre, result.tracks, sol, config.graph, points=result.points,
+                                    points_config=config.points, relations=result.relations)
+        return adjust_with_points(pre, result.tracks, result.relations, sol, result.points, config.graph,
+                                  config.points) if joint else sol
 
     if not result.linear.registered.any():  # nothing to adjust: the point tracks alone may place the frames
         log.warning("the linear solve registered no frame: bundle adjustment skipped")

@@ -92,7 +92,8 @@ def test_a_shorter_arm_places_fewer_frames():
 
 
 def test_run_reports_each_frames_source_and_strict_keeps_line_fixed_frames(tmp_path):
-    """summary.json: frames.source / sigma_rel per frame, by_source counts; --strict: only "lines", same frames."""
+    """summary.json: frames.source / sigma_rel per frame, by_source counts; --strict: only "lines", same frames, and
+    no point tracks in the bundle adjustment (by default they join it)."""
     import json
 
     from panosfm_graph.cli import main
@@ -100,11 +101,14 @@ def test_run_reports_each_frames_source_and_strict_keeps_line_fixed_frames(tmp_p
 
     cap = synthesize(tmp_path / "cap", scene="bedroom", n_frames=150, size=(480, 270), seed=2, gt_maps=False,
                      sway_m=0.05)
-    runs = {}
+    runs, joint = {}, {}
     for name, extra in (("default", []), ("strict", ["--strict"])):
         out = tmp_path / name
         assert main(["run", str(cap), str(out), "--no-rerun", "--resume", *extra]) == 0
-        runs[name] = json.loads((out / "summary.json").read_text())["frames"]
+        summary = json.loads((out / "summary.json").read_text())
+        runs[name] = summary["frames"]
+        joint[name] = summary["residuals"]["bundle_adjust"].get("points_in_ba")
+    assert joint["strict"] is None and joint["default"]["kept"], joint
     for fr in runs.values():
         assert len(fr["source"]) == fr["total"] == len(fr["sigma_rel"])
         assert sum(fr["by_source"].values()) == fr["registered"]

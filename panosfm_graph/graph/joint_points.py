@@ -7,7 +7,8 @@ pixels (measured: the corners tracked over a 100-frame bedroom spin sat 2.1-6.1 
 room corner clicked in the first and last frames reprojected 20-28 px off). :func:`adjust_with_points` solves the
 bundle adjustment's phase-2 cost (line reprojection, colinearity, the coplanarities it kept, IMU relative
 rotations, rotation prior, spin prior; rotations, centres and lines free) once more from its solution with the
-point tracks (:mod:`panosfm_graph.points`) joined: each track a 3D point triangulated at the current poses, its
+point tracks (:mod:`panosfm_graph.points`) joined, after the motion model placed the frames the lines leave
+without a pose (the points then tie every frame, not only the line-fixed ones): each track a 3D point triangulated at the current poses, its
 corners seen through :class:`factors.PointProjectionSet` (Huber), the tracks that stay more than
 ``points.reject_px`` off dropped and the graph solved again (as the motion model does). Every registered frame
 gets a centre variable (the spin prior holds those that see no line). The scale is a gauge the points do not
