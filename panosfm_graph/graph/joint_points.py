@@ -12,7 +12,9 @@ without a pose (the points then tie every frame, not only the line-fixed ones): 
 corners seen through :class:`factors.PointProjectionSet` (Huber), the tracks that stay more than
 ``points.reject_px`` off dropped and the graph solved again (as the motion model does). Every registered frame
 gets a centre variable (the spin prior holds those that see no line). The scale is a gauge the points do not
-fix: the result is scaled back to the solution's own spread of centres.
+fix: the result is scaled back to the solution's own spread of centres. Where the points had placed the frames
+(the lines adjusted at held poses, :mod:`.held_poses`), the lines are adjusted at the new poses once more: on a
+plain room swaying (seed 11) the joint solve left its few lines 18.3 cm from the surfaces, 10.7 cm after.
 
 Not worse than its input by its own measure: where the lines' RMS reprojection distance ends more than
 ``graph.points_joint_max_line_rms_ratio`` times theirs before (and 0.5 px more), or the system is singular,
@@ -31,6 +33,7 @@ import numpy as np
 from ..config import GraphConfig, PointsConfig
 from ..data import FLOOR, PointTracks, Preprocessed, Relations, Solution, Tracks
 from .factor_graph import _build_graph
+from .held_poses import adjust_lines_at_poses
 from .motion_model import MIN_FIXED, _point_observations, _solve_rejecting_points
 from .problem import FLOOR_KEY, _select, initial_values, rotation_key
 from .readout import _reprojection_rms, _solution
@@ -113,6 +116,8 @@ def adjust_with_points(pre: Preprocessed, tracks: Tracks, relations: Relations, 
         out.residuals["floor_height"] = scale * float(values.atVector(FLOOR_KEY)[0])
     record["scale"] = scale
     out.residuals["points_in_ba"] = record
+    if "lines_held_poses" in sol.residuals:  # the points placed the frames: the lines adjusted at them again
+        out = adjust_lines_at_poses(pre, tracks, relations, out, config)
     log.info("bundle adjustment with %d point tracks (%d observations, %d dropped): lines RMS %.3f -> %.3f px, "
              "points %.2f -> %.3f px (%.2f s)", record["points"], record["observations"], dropped, line_rms0,
              line_rms1, point_rms0, record["point_rms_px"][1] or float("nan"), record["seconds"])
