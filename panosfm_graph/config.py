@@ -393,7 +393,7 @@ class GraphConfig:
     lines_held_poses: bool = True
     # the bundle adjustment solved once more with the point tracks joined (graph/joint_points.py), kept unless the
     # lines' RMS reprojection grows more than this ratio (0: off); see docs/decisions.md#points-in-the-bundle-adjustment
-    points_joint_max_line_rms_ratio: float = 2.0
+    points_joint_max_line_rms_ratio: float = 3.0
     # metric scale: the floor moves down to the deepest horizontal line seen in at least this many frames (0: off);
     # see docs/decisions.md#floor-below-lines
     floor_below_lines_min_obs: int = 3
