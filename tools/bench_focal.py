@@ -45,13 +45,14 @@ def one(cap: Path, out: Path, true: float, config: Config) -> dict:
     res = run_pipeline(cap, out, config, rerun=False, views=False, stop_after="preprocess")
     secs = time.perf_counter() - t0
     est, st = res.focal, res.focal_stitched
-    used = st.focal_px if st is not None and st.accepted else est.focal_px
     err = lambda f: 100.0 * (f / true - 1.0)  # noqa: E731
     return {"true_px": true, "vp_err_pct": err(est.focal_px),
             "fit": None if st is None else {"model": st.model, "err_pct": err(st.focal_px), "rms_px": st.rms_px,
-                                            "p90_px": st.p90_px,                                            "centre_p90_px": st.centre_p90_px, "accepted": st.accepted,
-                                            "tracks": st.tracks, "seconds": st.seconds},
-            "used_err_pct": err(used), "focal_stage_s": round(res.summary["seconds"].get("focal", float("nan")), 2),
+                                            "p90_px": st.p90_px, "centre_p90_px": st.centre_p90_px,
+                                            "accepted": st.accepted, "tracks": st.tracks, "seconds": st.seconds},
+            # the focal length the rest of the pipeline goes on with: the capture's camera after the focal stage
+            "used_err_pct": err(float(res.capture.camera.K[0, 0])),
+            "focal_stage_s": round(res.summary["seconds"].get("focal", float("nan")), 2),
             "run_s": round(secs, 1)}
 
 

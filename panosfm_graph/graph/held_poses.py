@@ -18,7 +18,7 @@ import time
 import numpy as np
 
 from ..config import GraphConfig
-from ..data import FLOOR, Preprocessed, Relations, Solution, Tracks
+from ..data import Preprocessed, Relations, Solution, Tracks
 from .factor_graph import _build_graph
 from .lm import levenberg_marquardt
 from .problem import FLOOR_KEY, _select, initial_values
@@ -41,7 +41,6 @@ def adjust_lines_at_poses(pre: Preprocessed, tracks: Tracks, relations: Relation
         return sol
     values = initial_values(prob, sol)
     gauge = _gauge(relations, prob, sol, pre.manhattan.directions)
-    gauge["use_floor"] = bool(np.any(relations.kind[prob.rel_idx] == FLOOR))
     gauge["held_centers"] = sol.centers
     if gauge["use_floor"]:
         values.insert(FLOOR_KEY, np.array([gauge["floor_h"]]))

@@ -31,7 +31,7 @@ import gtsam
 import numpy as np
 
 from ..config import GraphConfig, PointsConfig
-from ..data import FLOOR, PointTracks, Preprocessed, Relations, Solution, Tracks
+from ..data import PointTracks, Preprocessed, Relations, Solution, Tracks
 from .factor_graph import _build_graph
 from .held_poses import adjust_lines_at_poses
 from .motion_model import MIN_FIXED, _point_observations, _solve_rejecting_points
@@ -75,7 +75,6 @@ def adjust_with_points(pre: Preprocessed, tracks: Tracks, relations: Relations, 
     R_wc = np.where(sol.registered[:, None, None], sol.R_wc, np.nan)
     _insert_spin(pre, prob, sol.centers, R_wc, config, values, gauge)
     gauge["R_prior"] = {int(i): gtsam.Rot3(R_wc[i]) for i in prob.rot_frames}
-    gauge["use_floor"] = bool(np.any(relations.kind[prob.rel_idx] == FLOOR))
     if gauge["use_floor"]:
         values.insert(FLOOR_KEY, np.array([gauge["floor_h"]]))
     for i in prob.rot_frames:

@@ -69,8 +69,8 @@ def bearing_set(points: PointTracks, R_wc: np.ndarray, K: np.ndarray, config: Po
                  centers: np.ndarray | None = None, depth: float = ASSUMED_DISTANCE
                  ) -> factors.PointProjectionSet | None:
     """Returns the observations of the point tracks seen in ``config.min_frames`` frames as bearings
-    (module docstring), each point inserted into ``values`` at ``ASSUMED_DISTANCE`` along the mean viewing ray of
-    its observations at ``R_wc`` with the weak ``prior`` in ``graph``, each frame's rotation ``r<i>`` and the
+    (module docstring), each point inserted into ``values`` ``depth`` (``ASSUMED_DISTANCE``) along the mean viewing ray
+    of its observations at ``R_wc`` with the weak ``prior`` in ``graph``, each frame's rotation ``r<i>`` and the
     one centre ``c0`` variables (and the focal length ``focal_key`` where given); None where no track is that long
     (also :func:`panosfm_graph.points.stitched_focal`'s). With ``centers`` (F, 3) each frame is seen from its own
     centre ``c<i>`` instead, each point starts ``depth`` along its mean ray from the mean of its frames' centres,

@@ -17,7 +17,8 @@ from .problem import _Problem
 
 
 def _gauge(relations: Relations, prob: _Problem, initial: Solution, manhattan: np.ndarray) -> dict:
-    """Returns the gauge constants: first centre, floor height, and the fallback scale line."""
+    """Returns the gauge constants: first centre, whether floor relations hold the scale and the floor height, and
+    the fallback scale line."""
     # the first frame that sees a line (a steady spin's problem also holds frames that see none: _select)
     first = int(prob.obs_frame.min()) if len(prob.obs_frame) else int(np.flatnonzero(initial.registered)[0])
     c0 = np.asarray(initial.centers[first], dtype=np.float64)
@@ -35,7 +36,7 @@ def _gauge(relations: Relations, prob: _Problem, initial: Solution, manhattan: n
     dist = float(np.linalg.norm(v))
     normal = v / dist if dist > 1e-9 else np.cross(A, [0.0, 0.0, 1.0] if abs(A[2]) < 0.9 else [1.0, 0.0, 0.0])
     normal = normal / np.linalg.norm(normal)
-    return {"first": first, "first_center": c0, "floor_h": floor_h, "scale_line": best,
+    return {"first": first, "first_center": c0, "use_floor": bool(len(fl)), "floor_h": floor_h, "scale_line": best,
             "scale_normal": normal, "scale_offset": float(normal @ (lam - c0))}
 
 

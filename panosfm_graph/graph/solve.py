@@ -17,7 +17,7 @@ import numpy as np
 import factors
 
 from ..config import GraphConfig
-from ..data import FLOOR, Preprocessed, Relations, Solution, Tracks
+from ..data import Preprocessed, Relations, Solution, Tracks
 from ..geometry import turned_degrees
 from .determinacy import _mark_undetermined, _verify_relations, focal_sigma
 from .factor_graph import _build_graph
@@ -146,9 +146,7 @@ def _bundle_adjust_once(pre: Preprocessed, tracks: Tracks, relations: Relations,
     gauge["R_prior"] = {int(i): gtsam.Rot3(_orthonormal(R_wc[i])) for i in prob.rot_frames}
     residuals: dict = {"phases": {}, "factors": {}}
     rel_mask = np.ones(len(prob.rel_idx), bool)
-    floor_used = bool(np.any(relations.kind[prob.rel_idx] == FLOOR))
-    gauge["use_floor"] = floor_used
-    if floor_used:
+    if gauge["use_floor"]:
         values.insert(FLOOR_KEY, np.array([gauge["floor_h"]]))
     residuals["reprojection_rms_px_initial"] = _reprojection_rms(pre, prob, initial.lines.taylor, initial.R_wc,
                                                                  initial.centers, K)
