@@ -65,7 +65,7 @@ def adjust_with_points(pre: Preprocessed, tracks: Tracks, relations: Relations, 
     frames = np.intersect1d(prob.frames, prob.rot_frames)
     K = sol.camera.K
     pset, n_pts, point_init = _point_observations(sol.centers, points, frames, sol.registered, sol.R_wc, K,
-                                                  points_config)
+                                                  points_config, per_frame=points_config.per_frame_joint)
     if pset is None or not len(prob.lines):
         return sol
     values = initial_values(prob, sol)

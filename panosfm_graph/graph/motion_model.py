@@ -386,15 +386,16 @@ def _add_rotations(graph, values, fixed: np.ndarray, todo: np.ndarray, R: np.nda
 
 
 def _point_observations(centers: np.ndarray, points: PointTracks, frames: np.ndarray, held: np.ndarray, R: np.ndarray,
-                        K: np.ndarray, config: PointsConfig
+                        K: np.ndarray, config: PointsConfig, per_frame: int | None = None
                         ) -> tuple[factors.PointProjectionSet | None, np.ndarray, dict[int, np.ndarray]]:
     """Returns (the observations of the point tracks seen by ``frames`` as one set, (F,) their number per frame,
     {point key: the point triangulated from ``centers`` (F, 3) at rotations ``R``}).
 
     A point behind a camera, or more than ``points.max_error_px`` off an observation by a line-fixed frame
     (``held``, (F,) bool; the others start from the spin model's guess), is dropped; each
-    frame keeps its ``points.per_frame_graph`` observations of the tracks spanning the most frames; a point needs
-    two."""
+    frame keeps its ``per_frame`` (default ``points.per_frame_graph``; 0: all) observations of the tracks spanning
+    the most frames; a point needs two."""
+    per_frame = config.per_frame_graph if per_frame is None else per_frame
     F = len(R)
     n_added = np.zeros(F, np.int64)
     sel = np.isin(points.frame, frames)
@@ -416,7 +417,8 @@ def _point_observations(centers: np.ndarray, points: PointTracks, frames: np.nda
     obs = np.flatnonzero(ok_pt[t])
     obs = obs[np.lexsort((-span[t[obs]], f[obs]))]  # by frame, the widest-spanning tracks first
     rank = np.arange(len(obs)) - np.searchsorted(f[obs], f[obs])
-    obs = obs[rank < config.per_frame_graph]
+    if per_frame > 0:
+        obs = obs[rank < per_frame]
     obs = obs[np.bincount(t[obs], minlength=len(ids))[t[obs]] >= 2]
     if not len(obs):
         return None, n_added, {}
