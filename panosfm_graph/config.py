@@ -186,7 +186,7 @@ class PointsConfig:
     max_error_px: float = 30.0  # a point triangulated more than this off a line-fixed frame's observation is dropped
     per_frame_graph: int = 40  # point observations per frame in the graph (the tracks spanning the most frames)
     # ... and in the bundle adjustment with the points joined (0: every observation); see
-    # docs/decisions.md#points-in-the-bundle-adjustment
+    # docs/decisions.md#every-point-in-the-joint-solve
     per_frame_joint: int = 0
 
 

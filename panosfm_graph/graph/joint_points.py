@@ -8,9 +8,11 @@ room corner clicked in the first and last frames reprojected 20-28 px off). :fun
 bundle adjustment's phase-2 cost (line reprojection, colinearity, the coplanarities it kept, IMU relative
 rotations, rotation prior, spin prior; rotations, centres and lines free) once more from its solution with the
 point tracks (:mod:`panosfm_graph.points`) joined, after the motion model placed the frames the lines leave
-without a pose (the points then tie every frame, not only the line-fixed ones): each track a 3D point triangulated at the current poses, its
-corners seen through :class:`factors.PointProjectionSet` (Huber), the tracks that stay more than
-``points.reject_px`` off dropped and the graph solved again (as the motion model does). Every registered frame
+without a pose (the points then tie every frame, not only the line-fixed ones): each track a 3D point triangulated
+at the current poses, its corners seen through :class:`factors.PointProjectionSet` (Huber; every observation, not
+the motion model's few per frame: ``points.per_frame_joint``, docs/decisions.md#every-point-in-the-joint-solve),
+the tracks that stay more than ``points.reject_px`` off dropped and the graph solved again (as the motion model
+does). Every registered frame
 gets a centre variable (the spin prior holds those that see no line). The scale is a gauge the points do not
 fix: the result is scaled back to the solution's own spread of centres. Where the points had placed the frames
 (the lines adjusted at held poses, :mod:`.held_poses`), the lines are adjusted at the new poses once more: on a
