@@ -425,6 +425,9 @@ class GraphConfig:
     heading_drift_sigma_deg: float = 0.0
     focal_max_sigma_frac: float = 0.002  # phase 3 refines the focal only if its marginal std is below this share of it
     max_line_sigma_m: float = 0.1  # lines whose position std (from their factors) exceeds this are marked invalid
+    # ... and those whose far end lies beyond this times the median line's from the spin's centre (0: off); see
+    # docs/decisions.md#lines-beyond-the-room
+    max_line_distance_ratio: float = 4.0
     max_center_sigma_m: float = 0.1  # frames whose centre std (from their observations) exceeds this are unregistered
 
 

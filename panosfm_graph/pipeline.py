@@ -408,20 +408,21 @@ def _linear(capture: Capture, pre: Preprocessed, tracks: Tracks, relations: Rela
 def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
                    on_batch: Callable[[int, Solution], None] | None,
                    points: Callable[[], PointTracks] | None = None) -> Solution:
-    from .graph import (adjust_with_points, bundle_adjust, bundle_adjust_incremental, place_by_motion_model,
-                        solve_at_final_scale, steady_or_hand_held)
+    from .graph import (adjust_with_points, bundle_adjust, bundle_adjust_incremental, drop_lines_beyond_room,
+                        place_by_motion_model, solve_at_final_scale, steady_or_hand_held)
 
     def place(sol: Solution) -> Solution:
-        """The frames the lines leave without a pose placed by the spin's motion model and the point tracks where
-        the std is small enough, then the bundle adjustment with the point tracks joined (graph/joint_points.py)."""
+        """The frames the lines leave without a pose placed by the motion model and the point tracks where the std
+        is small enough, the BA with the point tracks joined (graph/joint_points.py), lines beyond the room dropped."""
         with_points = points is not None and config.points.enabled
         joint = with_points and config.graph.points_joint_max_line_rms_ratio > 0
         if with_points and (joint or (config.graph.motion_model and not sol.registered.all())):
             result.points = points()
         sol = place_by_motion_model(pre, result.tracks, sol, config.graph, points=result.points,
                                     points_config=config.points, relations=result.relations)
-        return adjust_with_points(pre, result.tracks, result.relations, sol, result.points, config.graph,
-                                  config.points) if joint else sol
+        sol = adjust_with_points(pre, result.tracks, result.relations, sol, result.points, config.graph,
+                                 config.points) if joint else sol
+        return drop_lines_beyond_room(sol, config.graph.max_line_distance_ratio)
 
     if not result.linear.registered.any():  # nothing to adjust: the point tracks alone may place the frames
         log.warning("the linear solve registered no frame: bundle adjustment skipped")

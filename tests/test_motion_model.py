@@ -108,6 +108,7 @@ def test_run_reports_each_frames_source_and_strict_keeps_line_fixed_frames(tmp_p
         summary = json.loads((out / "summary.json").read_text())
         runs[name] = summary["frames"]
         joint[name] = summary["residuals"]["bundle_adjust"].get("points_in_ba")
+        assert summary["residuals"]["bundle_adjust"]["lines_beyond_room"] >= 0  # the room's bound was checked
     assert joint["strict"] is None and joint["default"]["kept"], joint
     for fr in runs.values():
         assert len(fr["source"]) == fr["total"] == len(fr["sigma_rel"])
@@ -252,6 +253,32 @@ def test_lines_at_poses_triangulates_the_lines_of_placed_frames():
     np.testing.assert_array_equal(out.valid, [True] * 5 + [False])
     np.testing.assert_allclose(out.taylor[:5, :2], edges[:5], atol=1e-6)
     np.testing.assert_allclose(out.endpoints[:5, [2, 5]], np.tile([0.3, 1.1], (5, 1)), atol=1e-6)
+
+
+def test_lines_beyond_the_room_are_left_out():
+    """``graph.readout.drop_lines_beyond_room``: a 9 x 7 m hall's edges seen from a stand point 2 m off its centre
+    all stay (the far corner 1.5x the median edge's distance); a line slid along its rays to 150 m is marked invalid
+    and counted; ratio 0 keeps every line; a line at (9, 4) m, 1.4x, stays."""
+    from panosfm_graph.graph import drop_lines_beyond_room
+
+    R, c = _spin(0.05)
+    c = c + np.array([2.0, 1.0, 0.0])  # the stand point off the hall's centre
+    corners = np.array([[4.5, 3.5], [-4.5, 3.5], [-4.5, -3.5], [4.5, -3.5]])
+    along_x = np.array([[x, y] for y in (3.5, -3.5) for x in np.linspace(-4.0, 4.0, 5)])
+    vertical = np.concatenate([corners, along_x, [[150.0, 40.0]]])  # the last one beyond the room
+    T = len(vertical)
+    taylor = np.column_stack([vertical, np.zeros(T)])
+    lines = LineModel(taylor, np.tile([0.0, 0.0, 1.0], (T, 1)), np.full(T, 2, np.int8),
+                      np.tile([-1.4, 2.6], (T, 1)), np.ones(T, bool))
+    cam = Camera("PINHOLE", 960, 540, np.array([768.0, 768.0, 479.5, 269.5]))
+    sol = Solution(R_wc=R, centers=c, registered=np.ones(F, bool), lines=lines, camera=cam, metric=True, residuals={})
+    out = drop_lines_beyond_room(sol, 4.0)
+    np.testing.assert_array_equal(out.lines.valid, [True] * (T - 1) + [False])
+    assert out.residuals["lines_beyond_room"] == 1
+    np.testing.assert_array_equal(out.lines.taylor, sol.lines.taylor)  # the lines themselves as they were
+    assert drop_lines_beyond_room(sol, 0.0).lines.valid.all()
+    closer = dataclasses.replace(lines, taylor=np.concatenate([taylor[:-1], [[9.0, 4.0, 0.0]]]))
+    assert drop_lines_beyond_room(dataclasses.replace(sol, lines=closer), 4.0).lines.valid.all()  # a hall's edge
 
 
 def test_line_fixed_frames_the_points_disagree_with_are_replaced_by_the_points_poses():

@@ -111,7 +111,7 @@ from .lm import levenberg_marquardt
 from .motion_model import place_by_motion_model
 from .problem import (ARM_KEY, DRIFT_KEY, FLOOR_KEY, FOCAL_KEY, center_key, floor_held_scale, line_key, relation_residuals,
                       relation_sigmas, rotation_key, stand_key)
-from .readout import line_extents
+from .readout import drop_lines_beyond_room, line_extents
 from .rotation_only import rotation_bundle_adjust
 from .scale import _scaled
 from .solve import MAX_REJECT_ROUNDS, bundle_adjust, bundle_adjust_incremental, solve_at_final_scale
@@ -120,7 +120,8 @@ from .style import steady_or_hand_held
 
 __all__ = [
     "ARM_KEY", "CHUNK_OBS", "DRIFT_KEY", "FLOOR_KEY", "FOCAL_KEY", "FOCAL_PRIOR_FRAC", "GAUGE_SIGMA", "MAX_REJECT_ROUNDS",
-    "adjust_lines_at_poses", "adjust_with_points", "bundle_adjust", "bundle_adjust_incremental", "center_key", "determinacy", "fit_spin", "floor_held_scale",
+    "adjust_lines_at_poses", "adjust_with_points", "bundle_adjust", "bundle_adjust_incremental", "center_key", "determinacy", "drop_lines_beyond_room",
+    "fit_spin", "floor_held_scale",
     "focal_sigma", "levenberg_marquardt", "line_extents", "line_key", "place_by_motion_model", "relation_residuals", "relation_sigmas",
     "rotation_bundle_adjust", "rotation_key", "solve_at_final_scale", "spin_arm_length", "spin_fit", "stand_key",
     "steady_or_hand_held",
