@@ -12,9 +12,8 @@ without a pose (the points then tie every frame, not only the line-fixed ones): 
 at the current poses, its corners seen through :class:`factors.PointProjectionSet` (Huber; every observation, not
 the motion model's few per frame: ``points.per_frame_joint``, docs/decisions.md#every-point-in-the-joint-solve),
 the tracks that stay more than ``points.reject_px`` off dropped and the graph solved again (as the motion model
-does). Every registered frame
-gets a centre variable (the spin prior holds those that see no line). The scale is a gauge the points do not
-fix: the result is scaled back to the solution's own spread of centres. Where the points had placed the frames
+does). Every registered frame gets a centre variable (the spin prior holds those that see no line). The scale is a
+gauge the points do not fix: the result is scaled back to the solution's own spread of centres. Where the points had placed the frames
 (the lines adjusted at held poses, :mod:`.held_poses`), the lines are adjusted at the new poses once more: on a
 plain room swaying (seed 11) the joint solve left its few lines 18.3 cm from the surfaces, 10.7 cm after.
 

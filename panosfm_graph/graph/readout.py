@@ -187,4 +187,3 @@ def drop_lines_beyond_room(sol: Solution, ratio: float) -> Solution:
     keep = lines.valid.copy()
     keep[np.flatnonzero(valid)[beyond]] = False
     return dataclasses.replace(sol, lines=dataclasses.replace(lines, valid=keep), residuals=res)
-
