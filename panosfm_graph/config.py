@@ -413,6 +413,9 @@ class GraphConfig:
     # after the last batch, solve everything once from the linear solution (equal to the one-shot result); see
     # docs/decisions.md#incremental-final-solve
     incremental_final_solve: bool = True
+    # a streamed batch before the last joins this many point observations per frame to its joint solve (0: all, as
+    # the last batch and one-shot do); see docs/decisions.md#streamed-point-tracks
+    incremental_points_per_frame: int = 40
     # phases >= 2: absolute prior at the preprocessed (vanishing-point) rotations (deg; 0: off); see
     # docs/decisions.md#rotation-prior
     rotation_prior_sigma_deg: float = 0.1

@@ -3,14 +3,17 @@
 ``Reconstruction(camera, config).add_frames(images, timestamps, imu_rotations)`` returns the current
 :class:`~panosfm_graph.data.Solution` of the frames so far. Per-frame work is done once, for the new
 frames only, as they arrive: line segment detection (§3.1, the costliest stage, in a worker pool kept
-across batches) and the surface normals (§3.2) of the new frames and of the old frames whose fusion
-neighbourhood they join (``normals.fuse_deg``). The Manhattan frame and the rotations (§3.1) are
-warm-started from the last batch (:func:`lines.refine_warm`); tracking, relations (§3.2), the linear
-solve (§3.3) and the bundle adjustment (§3.4) run again over all frames so far.
-:meth:`Reconstruction.finish` (or a last batch added with ``final=True``) is the optional final full
-solve: every stage over all frames from the same segments, equal to the one-shot
-:func:`pipeline.run_pipeline`. :func:`stream_capture` feeds a capture directory to it, N frames at a
-time (``panosfm run --incremental N``). Figures: docs/benchmarks.md#streaming-2026-12-06.
+across batches), the point tracks (extended into the new frames, :class:`points.PointTracker`) and the
+surface normals (§3.2) of the new frames and of the old frames whose fusion neighbourhood they join
+(``normals.fuse_deg``). The Manhattan frame and the rotations (§3.1) are warm-started from the last batch
+(:func:`lines.refine_warm`); tracking, relations (§3.2), the linear solve (§3.3) and the bundle adjustment
+(§3.4, the point tracks joined) run again over all frames so far, a batch before the last with
+``graph.incremental_points_per_frame`` point observations per frame (docs/decisions.md#streamed-point-tracks).
+The last batch (``add_frames(..., final=True)``) joins every observation; with
+``graph.incremental_final_solve`` it is the final full solve instead: every stage over all frames from the
+same segments and point tracks, as the one-shot :func:`pipeline.run_pipeline` (:meth:`Reconstruction.finish`
+solves so after any batch). :func:`stream_capture` feeds a capture directory to it, N frames at a time
+(``panosfm run --incremental N``). Figures: docs/benchmarks.md#streaming-2026-12-06.
 """
 from __future__ import annotations
 
@@ -22,11 +25,12 @@ from collections import deque
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
+import cv2
 import numpy as np
 
 from .config import Config
-from .data import Camera, Capture, GroundTruth, LineModel, NormalMaps, Preprocessed, Relations, Segments, Solution, \
-    Thumbnails, Tracks
+from .data import Camera, Capture, GroundTruth, LineModel, NormalMaps, PointTracks, Preprocessed, Relations, Segments, \
+    Solution, Thumbnails, Tracks
 from .errors import InputError, TooFewLinesError
 from .progress import stage
 
@@ -46,9 +50,9 @@ class Reconstruction:
     """A reconstruction that grows as frames arrive (module docstring; paper §3 per batch).
 
     ``camera`` is at the working resolution of the images passed in. ``reader`` (index -> BGR image)
-    gives old frames back where a stage needs them (the ``model`` normals, the point tracks the final solve
-    joins to the bundle adjustment); without it the images are kept in memory for the ``model`` normals only,
-    and the final solve goes without the point tracks. ``frame_names``, ``root`` and ``ground_truth`` (all
+    gives old frames back where a stage needs them (the ``model`` normals, the point tracks' loop a turn back);
+    without it the images are kept in memory for the ``model`` normals, and their grey levels for the point
+    tracks (0.5 MB a frame at 960x540). ``frame_names``, ``root`` and ``ground_truth`` (all
     frames) describe a capture on disk (``oracle`` normals need the ground truth).
     ``thumbnail_width``: keep each frame's JPEG thumbnail (the rerun timeline).
     ``estimate_focal``: the focal length from the Manhattan vanishing points of the first batch
@@ -70,6 +74,8 @@ class Reconstruction:
         self._estimate_focal = estimate_focal
         self._keep_images = reader is None and config.normals.source == "model"
         self._images: list[np.ndarray] = []
+        self._greys: list[np.ndarray] = []  # without a reader: the grey frames the point tracks read
+        self._tracker = None  # points.PointTracker over the frames so far
         self._detected: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._thumbs: list[bytes] = []
         self._timestamps = np.zeros(0)
@@ -112,30 +118,33 @@ class Reconstruction:
         ``residuals["batch_seconds"]`` is the latency, from the batch's last frame's arrival to the
         estimate; ``["stage_seconds"]`` the call's time per stage (``detect`` while frames arrive).
         Before enough lines exist, the estimate registers no frame (``residuals["why"]``). ``final``:
-        the last batch, solved as :meth:`finish` does (the final full solve in place of its estimate).
+        the last batch: every point observation joined, and with ``graph.incremental_final_solve`` solved as
+        :meth:`finish` does (the final full solve in place of its estimate).
         A malformed batch raises InputError and leaves the reconstruction as it was.
         """
         ts, R = self._check(timestamps, imu_rotations)
         timings: dict[str, float] = {}
         with stage("detect", timings):
-            detected, thumbs, kept, t_last = self._detect(images, len(ts))
+            detected, thumbs, kept, greys, t_last = self._detect(images, len(ts))
         self._detected.extend(detected)
         self._thumbs.extend(thumbs)
         self._images.extend(kept)
+        self._greys.extend(greys)
         self._timestamps = np.concatenate([self._timestamps, ts])
         self._imu = np.concatenate([self._imu, R])
-        sol = self._solve(full=final, timings=timings)
+        sol = self._solve(full=final and self.config.graph.incremental_final_solve, last=final, timings=timings)
         if final:
             sol.residuals["incremental_batches"] = len(self.batches) + 1
         return self._record(sol, t_last, timings)
 
     def finish(self) -> Solution:
-        """Returns the final full solve: every stage over all frames from the segments so far (as one-shot)."""
+        """Returns the final full solve: every stage over all frames from the segments and point tracks so far
+        (as one-shot)."""
         if not self.n_frames:
             raise InputError("no frames were added to the reconstruction", self._root)
         t0 = time.perf_counter()
         timings: dict[str, float] = {}
-        sol = self._solve(full=True, timings=timings)
+        sol = self._solve(full=True, last=True, timings=timings)
         sol.residuals["incremental_batches"] = len(self.batches) + 1
         return self._record(sol, t0, timings)
 
@@ -176,9 +185,11 @@ class Reconstruction:
             raise InputError("frame timestamps must increase across batches", self._root)
         return ts, R
 
-    def _detect(self, images: Iterable[np.ndarray], k: int) -> tuple[list, list[bytes], list[np.ndarray], float]:
+    def _detect(self, images: Iterable[np.ndarray], k: int) -> tuple[list, list[bytes], list[np.ndarray],
+                                                                     list[np.ndarray], float]:
         """Returns the new frames' :func:`lines.detect.detect_frame` results (paper §3.1), their thumbnails,
-        the images to keep and when the last frame arrived; each frame goes to the worker pool as it arrives."""
+        the images and grey images to keep and when the last frame arrived; each frame goes to the worker pool as
+        it arrives."""
         from .lines.detect import detect_frame
         from .parallel import process_pool
         from .thumbnails import jpeg_thumbnail
@@ -192,6 +203,7 @@ class Reconstruction:
         pending: deque = deque()  # a sliding window of frames in the pool, as detect_segments keeps
         thumbs: list[bytes] = []
         kept: list[np.ndarray] = []
+        greys: list[np.ndarray] = []
         count = 0
         for im in images:
             im = np.asarray(im)
@@ -203,6 +215,8 @@ class Reconstruction:
                 thumbs.append(jpeg_thumbnail(im, min(self._thumb_width, im.shape[1])))
             if self._keep_images:
                 kept.append(im)
+            if self._reader is None and self._track_points:
+                greys.append(cv2.cvtColor(im, cv2.COLOR_BGR2GRAY))
             if self._pool is None:
                 out.append(detect_frame(im, cfg, K, dist))
                 continue
@@ -213,7 +227,7 @@ class Reconstruction:
         out.extend(f.result() for f in pending)
         if count != k:
             raise InputError(f"a batch of {k} timestamps got {count} images", self._root)
-        return out, thumbs, kept, t_last
+        return out, thumbs, kept, greys, t_last
 
     def _capture(self) -> Capture:
         """Returns the frames so far as a :class:`Capture` (the stages' input)."""
@@ -232,18 +246,23 @@ class Reconstruction:
             return self._images[i]
         raise InputError("the stream keeps no images (only the 'model' normals read them again)", self._root)
 
-    def _solve(self, *, full: bool, timings: dict[str, float]) -> Solution:
+    def _solve(self, *, full: bool, last: bool, timings: dict[str, float]) -> Solution:
         """Returns the estimate over the frames so far: stages after detection (module docstring).
 
         ``full``: every stage as the one-shot run does (preprocessing from the IMU, every frame's normals,
-        the focal length over all frames); else warm-started, the normals of the frames the batch changed.
+        the focal length over all frames), from the point tracks so far; else warm-started, the normals of the
+        frames the batch changed. ``last``: every point observation in the joint solve (else
+        ``graph.incremental_points_per_frame``).
         """
         from .lines import refine_manhattan_and_rotations, refine_warm, track_lines
         from .linear import solve_linear
-        from .pipeline import RunResult, _bundle_adjust, _points
+        from .pipeline import RunResult, _bundle_adjust
         from .relations import detect_relations
 
         cfg = self.config
+        if not last:  # a preview: the joint solve with the motion model's few observations per frame
+            cfg = dataclasses.replace(cfg, points=dataclasses.replace(
+                cfg.points, per_frame_joint=int(cfg.graph.incremental_points_per_frame)))
         segments = self.segments
         try:
             if self._estimate_focal and (full or self.focal is None):
@@ -269,12 +288,31 @@ class Reconstruction:
             linear = solve_linear(pre, tracks, relations, cap.camera, cfg.linear)
         held = RunResult(out_dir=self._root, summary={}, capture=cap, preprocessed=pre, tracks=tracks,
                          relations=relations, linear=linear)
-        # the final solve joins the point tracks as one-shot does, where the old frames can be read again
-        points = (lambda: _points(cap, pre, cfg)) if full and (self._reader is not None or self._keep_images) else None
+        points = None
+        if self._track_points:
+            with stage("points", timings):
+                points = self._points(cap, pre)
         with stage("bundle_adjust", timings):
-            sol = _bundle_adjust(pre, held, cfg, None, points)
+            sol = _bundle_adjust(pre, held, cfg, None, (lambda: points) if points is not None else None)
         self.preprocessed, self.tracks, self.relations, self.linear, self.solution = pre, tracks, relations, linear, sol
         return sol
+
+    @property
+    def _track_points(self) -> bool:
+        return bool(self.config.points.enabled)
+
+    def _grey(self, i: int) -> np.ndarray:
+        return self._greys[i] if self._reader is None else cv2.cvtColor(self._reader(i), cv2.COLOR_BGR2GRAY)
+
+    def _points(self, cap: Capture, pre: Preprocessed) -> PointTracks:
+        """Returns the point tracks of the frames so far (``points/tracking.py``): the new frames' steps added to
+        the tracks so far, each predicted by the rotations of its batch (docs/decisions.md#streamed-point-tracks)."""
+        from .points import PointTracker
+
+        if self._tracker is None:
+            self._tracker = PointTracker(self.config.points)
+        self._tracker.extend(cap, pre.R_wc, grey=self._grey)
+        return self._tracker.tracks()
 
     def _normals_of(self, cap: Capture, pre: Preprocessed, full: bool) -> NormalMaps:
         """Returns the normal maps (paper §3.2): of the new frames and of the old ones whose fusion
@@ -309,8 +347,8 @@ def stream_capture(capture: Capture, config: Config, *, on_batch: Callable[[int,
     """Returns the :class:`Reconstruction` of a capture fed ``config.graph.incremental_batch`` frames at a time.
 
     Frames are read batch by batch (as they would arrive); ``on_batch(k, solution)`` sees each
-    batch's estimate. With ``graph.incremental_final_solve`` the last batch is the final full solve
-    (``add_frames(..., final=True)``): the result equals the one-shot run's.
+    batch's estimate. The last batch is added with ``final=True``: with ``graph.incremental_final_solve`` the
+    final full solve (every stage as the one-shot run, from the streamed segments and point tracks).
     """
     n = int(config.graph.incremental_batch or 0)
     if n < 1:
@@ -323,8 +361,7 @@ def stream_capture(capture: Capture, config: Config, *, on_batch: Callable[[int,
         for k, a in enumerate(starts):
             idx = np.arange(a, min(a + n, capture.n_frames))
             images = (capture.frame(int(i)) for i in idx)  # read as they arrive, detected as they are read
-            final = config.graph.incremental_final_solve and k == len(starts) - 1
-            sol = rec.add_frames(images, capture.timestamps[idx], capture.R_wc_imu[idx], final=final)
+            sol = rec.add_frames(images, capture.timestamps[idx], capture.R_wc_imu[idx], final=k == len(starts) - 1)
             log.info("batch %d: %d frames, %d registered, %.1f s", k, rec.n_frames, int(sol.registered.sum()),
                      sol.residuals["batch_seconds"])
             if on_batch is not None:

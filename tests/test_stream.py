@@ -22,33 +22,54 @@ def spin(tmp_path_factory) -> Path:
     return synthesize(tmp_path_factory.mktemp("stream") / "living", "living", FRAMES, SIZE, seed=0, gt_maps=False)
 
 
-def test_streamed_run_grows_and_ends_equal_to_the_one_shot_run(spin, tmp_path):
-    """``run --incremental 40``: three batches of 40, 80, 120 frames whose registered frame counts only grow; the last
-    batch (the final full solve) gives the one-shot run's poses and lines; summary.json has each batch's seconds
-    per stage."""
+def _metrics(spin: Path, out: Path) -> dict[str, float]:
+    from panosfm_graph.evaluate import evaluate_reconstruction
+
+    m = evaluate_reconstruction(spin, out)
+    return {"centre": m["center_error_rel"]["mean"], "rotation": m["rotation_error_rotalign_deg"]["median"],
+            "corners": m["reprojection_px"]["median"], "lines": m["lines"]["distance_m"]["median"]}
+
+
+@pytest.fixture(scope="module")
+def one_shot(spin, tmp_path_factory) -> dict[str, float]:
+    from panosfm_graph.config import Config
+    from panosfm_graph.pipeline import run_pipeline
+
+    out = tmp_path_factory.mktemp("one")
+    res = run_pipeline(spin, out, Config(), rerun=False, views=False)
+    assert res.solution.registered.all()
+    return _metrics(spin, out)
+
+
+@pytest.mark.parametrize("final_solve, within", [(True, 0.10), (False, 0.25)])
+def test_streamed_run_grows_and_ends_near_the_one_shot_run(spin, one_shot, tmp_path, final_solve, within):
+    """``run --incremental 40``: three batches of 40, 80, 120 frames whose registered frames only grow; the last
+    batch (the final full solve, or without it the last warm batch with every point observation) is within 10 %
+    (25 % without the final solve) of the one-shot run's errors against the ground truth (issue 42's bar);
+    summary.json has each batch's seconds per stage."""
     from panosfm_graph.config import Config, with_overrides
     from panosfm_graph.pipeline import run_pipeline
 
-    one = run_pipeline(spin, tmp_path / "one", Config(), rerun=False, views=False)
     seen = []
-    streamed = run_pipeline(spin, tmp_path / "stream", with_overrides(Config(), graph={"incremental_batch": BATCH}),
-                            rerun=False, views=False, on_batch=lambda k, sol: seen.append((k, sol)))
+    cfg = with_overrides(Config(), graph={"incremental_batch": BATCH, "incremental_final_solve": final_solve})
+    streamed = run_pipeline(spin, tmp_path / "stream", cfg, rerun=False, views=False,
+                            on_batch=lambda k, sol: seen.append((k, sol)))
     assert [k for k, _ in seen] == [0, 1, 2]
     assert [len(sol.registered) for _, sol in seen] == [40, 80, 120]
     regs = [sol.registered for _, sol in seen]
     counts = [int(x.sum()) for x in regs]
-    assert counts[0] > 0 and counts == sorted(counts) and counts[-1] > counts[0]
+    assert counts[0] > 0 and counts == sorted(counts) and counts[-1] == 120
     for a, b in zip(regs, regs[1:]):
         assert np.all(b[:len(a)] | ~a)  # a frame once registered stays registered
-    final, ref = streamed.solution, one.solution
-    assert np.array_equal(final.registered, ref.registered)
-    r = ref.registered
-    np.testing.assert_allclose(final.centers[r], ref.centers[r], atol=1e-9)
-    np.testing.assert_allclose(final.R_wc[r], ref.R_wc[r], atol=1e-9)
-    np.testing.assert_allclose(final.lines.endpoints[ref.lines.valid], ref.lines.endpoints[ref.lines.valid], atol=1e-9)
+    assert streamed.solution.residuals["points_in_ba"]["kept"]
+    got = _metrics(spin, tmp_path / "stream")
+    for name, ref in one_shot.items():  # a floor for figures at the noise's level (corners: the 0.5 px clicks)
+        floor = {"centre": 2e-4, "rotation": 2e-3, "corners": 0.02, "lines": 1e-3}[name]
+        assert got[name] <= (1 + within) * ref + floor, (name, got[name], ref)
     s = json.loads((tmp_path / "stream" / "summary.json").read_text())
     assert s["incremental_batches"] == [int(x.sum()) for x in regs]
     assert len(s["incremental_stage_seconds"]) == 3 and "detect" in s["incremental_stage_seconds"][0]
+    assert "points" in s["incremental_stage_seconds"][0]
     assert all(v > 0 for v in s["incremental_batch_seconds"])
     assert s["incremental_latency_seconds"]["max"] == max(s["incremental_batch_seconds"])
 

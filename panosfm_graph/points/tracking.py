@@ -32,6 +32,7 @@ the working images.
 from __future__ import annotations
 
 import logging
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -112,45 +113,102 @@ def _step(g0: np.ndarray, g1: np.ndarray, p0: np.ndarray, guess: np.ndarray, con
 
 def track_points(capture: Capture, R_wc: np.ndarray, config: PointsConfig) -> PointTracks:
     """Returns the point tracks of ``capture`` (module docstring), predicted by the rotations ``R_wc`` (F, 3, 3)."""
-    K = capture.camera.K
-    n = capture.n_frames
-    frames, tracks, xy = [], [], []
-    ids = np.zeros(0, np.int64)
-    pts = np.zeros((0, 2), np.float32)
-    next_id = 0
-    prev = None
-    # the parallax grows with the baseline, so with the spin's step (60 per turn: 24 px at 1 m on a 0.3 m arm)
-    finite = np.all(np.isfinite(R_wc), axis=(1, 2))
-    max_parallax = config.max_parallax_px * max(1.0, median_step_deg(R_wc[finite]) / config.parallax_ref_step_deg)
-    for i in progress(range(n), "points", total=n):
-        g = _grey(capture, i)
-        if prev is not None and len(pts) and np.all(np.isfinite(R_wc[[i - 1, i]])):
-            guess = _apply(rotation_homography(K, R_wc[i - 1], R_wc[i]), pts.astype(np.float64))
-            pts, ok = _step(prev, g, pts, guess, config, max_parallax)
-            pts, ids = pts[ok], ids[ok]
-        elif prev is not None:
-            pts, ids = np.zeros((0, 2), np.float32), np.zeros(0, np.int64)
-        new = _seed(g, pts, config)
-        pts = np.concatenate([pts, new]).astype(np.float32)
-        ids = np.concatenate([ids, np.arange(next_id, next_id + len(new))])
-        next_id += len(new)
-        frames.append(np.full(len(pts), i, np.int32))
-        tracks.append(ids.copy())
-        xy.append(pts.copy())
-        prev = g
-    frames, tracks, xy = _close_loops(capture, R_wc, frames, tracks, xy, config)
-    frame = np.concatenate(frames) if frames else np.zeros(0, np.int32)
-    track = np.concatenate(tracks) if tracks else np.zeros(0, np.int64)
-    obs = np.concatenate(xy) if xy else np.zeros((0, 2), np.float32)
-    order = np.argsort(frame, kind="stable")
-    frame, track, obs = frame[order], track[order], obs[order]
-    length = np.bincount(track, minlength=next_id)
-    keep = length[track] >= config.min_frames
-    _, track = np.unique(track[keep], return_inverse=True)
-    out = PointTracks(frame=frame[keep], track=track.astype(np.int32), xy=obs[keep].astype(np.float32))
-    log.info("point tracks: %d over %d frames (%d observations, %.1f per frame)", out.n, n, len(out.frame),
-             len(out.frame) / max(n, 1))
-    return out
+    tracker = PointTracker(config)
+    tracker.extend(capture, R_wc)
+    return tracker.tracks()
+
+
+class PointTracker:
+    """The point tracks of frames that arrive in order (module docstring; issue 42's streamed run).
+
+    :meth:`extend` follows the corners into the frames not yet seen, ``capture.frame(i)`` for each, predicted by the
+    rotations ``R_wc`` of all frames so far (the earlier frames' steps stay as they were tracked), and follows
+    the new frames' corners into the frames a turn before them (the loop, read through ``capture.frame``);
+    :meth:`tracks` returns the tracks so far. Extended once over every frame, it is :func:`track_points`.
+    """
+
+    def __init__(self, config: PointsConfig):
+        self.config = config
+        self.n_frames = 0
+        self._frames: list[np.ndarray] = []  # per frame: the frame index of each observation
+        self._tracks: list[np.ndarray] = []  # per frame: the track ids seen
+        self._xy: list[np.ndarray] = []  # per frame: where
+        self._loops: tuple[list, list, list] = ([], [], [])  # the observations the loop added (frame, id, xy)
+        self._seen: set[tuple[int, int]] = set()  # (track id, earlier frame) pairs the loop has followed
+        self._ids = np.zeros(0, np.int64)
+        self._pts = np.zeros((0, 2), np.float32)
+        self._next_id = 0
+        self._prev: np.ndarray | None = None
+
+    def extend(self, capture: Capture, R_wc: np.ndarray, grey: Callable[[int], np.ndarray] | None = None) -> None:
+        """Tracks the frames ``self.n_frames`` .. ``len(R_wc) - 1`` of ``capture`` (module docstring); ``grey``
+        (frame index -> grey image) in place of reading ``capture.frame`` where given."""
+        grey = grey if grey is not None else (lambda i: _grey(capture, i))
+        config, K = self.config, capture.camera.K
+        start, n = self.n_frames, len(R_wc)
+        # the parallax grows with the baseline, so with the spin's step (60 per turn: 24 px at 1 m on a 0.3 m arm)
+        finite = np.all(np.isfinite(R_wc), axis=(1, 2))
+        max_parallax = config.max_parallax_px * max(1.0, median_step_deg(R_wc[finite]) / config.parallax_ref_step_deg)
+        pts, ids, prev = self._pts, self._ids, self._prev
+        for i in progress(range(start, n), "points", total=n - start):
+            g = grey(i)
+            if prev is not None and len(pts) and np.all(np.isfinite(R_wc[[i - 1, i]])):
+                guess = _apply(rotation_homography(K, R_wc[i - 1], R_wc[i]), pts.astype(np.float64))
+                pts, ok = _step(prev, g, pts, guess, config, max_parallax)
+                pts, ids = pts[ok], ids[ok]
+            elif prev is not None:
+                pts, ids = np.zeros((0, 2), np.float32), np.zeros(0, np.int64)
+            new = _seed(g, pts, config)
+            pts = np.concatenate([pts, new]).astype(np.float32)
+            ids = np.concatenate([ids, np.arange(self._next_id, self._next_id + len(new))])
+            self._next_id += len(new)
+            self._frames.append(np.full(len(pts), i, np.int32))
+            self._tracks.append(ids.copy())
+            self._xy.append(pts.copy())
+            prev = g
+        self._pts, self._ids, self._prev, self.n_frames = pts, ids, prev, n
+        self._close_loops(capture, R_wc, start, grey)
+
+    def tracks(self) -> PointTracks:
+        """Returns the tracks so far of at least ``points.min_frames`` frames, sorted by frame."""
+        frames, tracks, xy = (self._frames + self._loops[0], self._tracks + self._loops[1], self._xy + self._loops[2])
+        frame = np.concatenate(frames) if frames else np.zeros(0, np.int32)
+        track = np.concatenate(tracks) if tracks else np.zeros(0, np.int64)
+        obs = np.concatenate(xy) if xy else np.zeros((0, 2), np.float32)
+        order = np.argsort(frame, kind="stable")
+        frame, track, obs = frame[order], track[order], obs[order]
+        length = np.bincount(track, minlength=self._next_id)
+        keep = length[track] >= self.config.min_frames
+        _, track = np.unique(track[keep], return_inverse=True)
+        out = PointTracks(frame=frame[keep], track=track.astype(np.int32), xy=obs[keep].astype(np.float32))
+        log.info("point tracks: %d over %d frames (%d observations, %.1f per frame)", out.n, self.n_frames,
+                 len(out.frame), len(out.frame) / max(self.n_frames, 1))
+        return out
+
+    def _close_loops(self, capture: Capture, R_wc: np.ndarray, start: int, grey: Callable[[int], np.ndarray]) -> None:
+        """Follows the corners of each loop pair's late frame (from ``start`` on) into the earlier one (one
+        observation per track and frame)."""
+        pairs = [(i, j) for i, j in loop_pairs(R_wc, self.config) if i >= start]
+        if not pairs:
+            return
+        K = capture.camera.K
+        added = 0
+        for i, j in pairs:
+            ids, pts = self._tracks[i], self._xy[i]
+            if not len(pts):
+                continue
+            H = rotation_homography(K, R_wc[i], R_wc[j])
+            g_i, g_j = grey(i), grey(j)
+            guess = _apply(H, pts.astype(np.float64)) + _coarse_shift(g_i, g_j, H)
+            p1, ok = _step(g_i, g_j, pts, guess, self.config, self.config.loop_parallax_px)
+            keep = [k for k in np.flatnonzero(ok) if (int(ids[k]), j) not in self._seen]
+            self._seen.update((int(ids[k]), j) for k in keep)
+            if keep:
+                self._loops[0].append(np.full(len(keep), j, np.int32))
+                self._loops[1].append(ids[keep])
+                self._loops[2].append(p1[keep].astype(np.float32))
+                added += len(keep)
+        log.info("point tracks: %d loop observations from %d frame pairs a turn apart", added, len(pairs))
 
 
 def loop_pairs(R_wc: np.ndarray, config: PointsConfig) -> list[tuple[int, int]]:
@@ -192,32 +250,3 @@ def _coarse_shift(g_i: np.ndarray, g_j: np.ndarray, H: np.ndarray) -> np.ndarray
     res = cv2.matchTemplate(b, a[r:-r, r:-r], cv2.TM_CCOEFF_NORMED)
     _, score, _, loc = cv2.minMaxLoc(res)
     return (np.array(loc, np.float64) - r) * _COARSE_SCALE if score >= _COARSE_MIN_SCORE else np.zeros(2)
-
-
-def _close_loops(capture: Capture, R_wc: np.ndarray, frames: list, tracks: list, xy: list, config: PointsConfig):
-    """Returns the per-frame lists with each loop pair's corners followed from the late frame into the earlier one
-    (one observation per track and frame)."""
-    pairs = loop_pairs(R_wc, config)
-    if not pairs:
-        return frames, tracks, xy
-    K = capture.camera.K
-    seen: set[tuple[int, int]] = set()
-    frames, tracks, xy = list(frames), list(tracks), list(xy)
-    added = 0
-    for i, j in pairs:
-        ids, pts = tracks[i], xy[i]
-        if not len(pts):
-            continue
-        H = rotation_homography(K, R_wc[i], R_wc[j])
-        g_i, g_j = _grey(capture, i), _grey(capture, j)
-        guess = _apply(H, pts.astype(np.float64)) + _coarse_shift(g_i, g_j, H)
-        p1, ok = _step(g_i, g_j, pts, guess, config, config.loop_parallax_px)
-        keep = [k for k in np.flatnonzero(ok) if (int(ids[k]), j) not in seen]
-        seen.update((int(ids[k]), j) for k in keep)
-        if keep:
-            frames.append(np.full(len(keep), j, np.int32))
-            tracks.append(ids[keep])
-            xy.append(p1[keep].astype(np.float32))
-            added += len(keep)
-    log.info("point tracks: %d loop observations from %d frame pairs a turn apart", added, len(pairs))
-    return frames, tracks, xy
