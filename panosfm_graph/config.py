@@ -49,6 +49,8 @@ class ManhattanConfig:
     iterations: int = 3  # alternate extraction / labelling / rotation refinement (10: 0.0764 -> 0.0757 deg only)
     vertical_search_deg: float = 10.0  # the vertical peak is searched this close to gravity
     vertical_max_deg: float = 5.0  # a refined vertical farther than this from gravity is replaced by it (0: off)
+    # ... and in a streamed batch's warm start (lines.refine_warm); see docs/decisions.md#warm-vertical
+    warm_vertical_max_deg: float = 0.25
     min_segments: int = 20  # fewer (Manhattan) segments than this: TooFewLinesError
 
 
