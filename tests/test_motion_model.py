@@ -281,12 +281,19 @@ def test_lines_beyond_the_room_are_left_out():
     assert drop_lines_beyond_room(dataclasses.replace(sol, lines=closer), 4.0).lines.valid.all()  # a hall's edge
 
 
-def test_line_fixed_frames_the_points_disagree_with_are_replaced_by_the_points_poses():
+def test_line_fixed_frames_the_points_disagree_with_are_replaced_by_the_points_poses(monkeypatch):
     """Lines fix two thirds of a swaying spin, but bent: their centres pushed sideways by up to 6 % of the
     diameter (a wrong lines' solution, as on hall seed 12). The points alone place the spin and put those
     frames elsewhere; every frame then gets the points' pose, moved onto the line-fixed frames' axes and scale,
-    and the result lies within 2 % of the truth. With the line-fixed frames where they are, nothing changes."""
+    and the result lies within 2 % of the truth, the anchored placement never computed (points first). With the
+    line-fixed frames where they are, nothing changes."""
     from panosfm_graph.geometry import umeyama
+    from panosfm_graph.graph import motion_model
+
+    placed = []
+    place = motion_model._place
+    monkeypatch.setattr(motion_model, "_place", lambda *a, anchor_free: placed.append(anchor_free) or
+                        place(*a, anchor_free=anchor_free))
 
     R, c = _spin(0.05)
     fixed = np.arange(F) < 200
@@ -299,6 +306,7 @@ def test_line_fixed_frames_the_points_disagree_with_are_replaced_by_the_points_p
     mm = out.residuals["motion_model"]
     assert mm.get("lines_replaced") and mm["lines_vs_points_rel"] > 0.01 and out.registered.all()
     assert set(out.residuals["frame_source"]) == {"points"}
+    assert placed == [True]
     s, A, t = umeyama(out.centers, c)
     err = np.linalg.norm(s * out.centers @ A.T + t - c, axis=1) / diameter
     assert err.max() < 0.02, err.max()
@@ -307,6 +315,7 @@ def test_line_fixed_frames_the_points_disagree_with_are_replaced_by_the_points_p
     kept = place_by_motion_model(pre, tracks, sol, GraphConfig(), points=pts)
     assert not kept.residuals["motion_model"].get("lines_replaced")
     assert kept.residuals["motion_model"]["lines_vs_points_rel"] < 0.01
+    assert placed == [True, True, False]  # the points' placement computed once, reused for the comparison
     np.testing.assert_array_equal(kept.centers[fixed], c[fixed])
 
 

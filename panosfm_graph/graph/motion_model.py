@@ -89,10 +89,21 @@ def place_by_motion_model(pre: Preprocessed, tracks: Tracks, sol: Solution, conf
             out.residuals["lines_at_poses"] = int(out.lines.valid.sum())
             out = _adjust_lines(pre, tracks, relations, out, config)
         return out
+    compare = has_points and config.motion_lines_points_max_rel > 0
+    free = None
+    if compare and config.motion_model and not sol.registered.all():
+        # the points alone first: where they place every frame and disagree with the lines, the anchored placement
+        # would be thrown away (measured, a streamed bedroom batch: 50 iterations, 11 s; docs/decisions.md#points-first)
+        free = _place(pre, tracks, sol, config, points, points_config, anchor_free=True)
+        if free.registered.all():
+            out = _lines_or_points(pre, tracks, sol, None, free, config)
+            if out is not None:
+                return _adjust_lines(pre, tracks, relations, out, config)
     anchored = _place(pre, tracks, sol, config, points, points_config, anchor_free=False)
-    if not has_points or config.motion_lines_points_max_rel <= 0 or "motion_model" not in anchored.residuals:
+    if not compare or "motion_model" not in anchored.residuals:
         return anchored
-    free = _place(pre, tracks, sol, config, points, points_config, anchor_free=True)
+    if free is None:
+        free = _place(pre, tracks, sol, config, points, points_config, anchor_free=True)
     out = _lines_or_points(pre, tracks, sol, anchored, free, config)
     replaced = out.residuals.get("motion_model", {}).get("lines_replaced", False)
     return _adjust_lines(pre, tracks, relations, out, config) if replaced else out
@@ -107,17 +118,18 @@ def _adjust_lines(pre: Preprocessed, tracks: Tracks, relations: Relations | None
     return adjust_lines_at_poses(pre, tracks, relations, sol, config)
 
 
-def _lines_or_points(pre: Preprocessed, tracks: Tracks, sol: Solution, anchored: Solution, free: Solution,
-                     config: GraphConfig) -> Solution:
+def _lines_or_points(pre: Preprocessed, tracks: Tracks, sol: Solution, anchored: Solution | None, free: Solution,
+                     config: GraphConfig) -> Solution | None:
     """Returns ``anchored`` (line-fixed frames kept, the rest placed by the points) unless the points alone
     (``free``: the line-fixed frames' rotations its anchors) place at least as many frames and put the line-fixed
     frames' centres, after a scale and a shift, more than ``graph.motion_lines_points_max_rel`` of the diameter
     (median) from the lines'; then ``free``
     moved onto the line-fixed frames by a scale and a shift (both are in the refined rotations' world), every line
     triangulated again at its poses (:func:`lines_at_poses`). Measured, hall seed 12 swaying: the lines'
-    frames 6-7 % off the truth, 172 of 300 accurate; the points' 300 (docs/decisions.md#lines-or-points)."""
+    frames 6-7 % off the truth, 172 of 300 accurate; the points' 300 (docs/decisions.md#lines-or-points).
+    ``anchored`` None (not placed yet; ``free`` places every frame): None wherever ``anchored`` would be returned."""
     fixed = sol.registered & free.registered
-    if free.registered.sum() < anchored.registered.sum() or fixed.sum() < MIN_FIXED:
+    if (anchored is not None and free.registered.sum() < anchored.registered.sum()) or fixed.sum() < MIN_FIXED:
         return anchored
     # both in the refined rotations' world (the points' gauge holds one of them): only a scale and a shift apart
     src, dst = free.centers[fixed], sol.centers[fixed]
@@ -126,10 +138,10 @@ def _lines_or_points(pre: Preprocessed, tracks: Tracks, sol: Solution, anchored:
     centers = s * (free.centers - src.mean(axis=0)) + dst.mean(axis=0)
     diameter = float(np.max(pdist(centers[free.registered])))
     gap = float(np.median(np.linalg.norm(centers[fixed] - sol.centers[fixed], axis=1)) / diameter)
-    res = dict(anchored.residuals)
-    res["motion_model"] = {**res["motion_model"], "lines_vs_points_rel": gap}
+    res = dict(anchored.residuals) if anchored is not None else {}
+    res["motion_model"] = {**res.get("motion_model", {}), "lines_vs_points_rel": gap}
     if gap <= config.motion_lines_points_max_rel:
-        return dataclasses.replace(anchored, residuals=res)
+        return None if anchored is None else dataclasses.replace(anchored, residuals=res)
     log.warning("the line-fixed frames lie %.1f %% of the spin's diameter from where the point tracks alone put "
                 "them (at most %.1f %%): the point tracks place every frame and the lines are triangulated again",
                 100 * gap, 100 * config.motion_lines_points_max_rel)
