@@ -211,6 +211,9 @@ class NormalsConfig:
     # so that the work per frame stays that of a 300-frame spin (0: every frame); see
     # docs/decisions.md#orientation-map-fusion-stride
     fuse_step_deg: float = 1.25
+    # streaming: an old frame's map is made again where its camera-frame Manhattan axes moved more than this (deg)
+    # since it was made (its fusion neighbourhood grown or not); see docs/decisions.md#streamed-normals
+    stream_keep_deg: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -412,11 +415,14 @@ class GraphConfig:
     resolve_scale_ratio: float = 1.25
     reject_sigma: float = 5.0  # drop relations whose residual exceeds this many sigmas, then resolve
     incremental_batch: int | None = None  # frames per batch for incremental solves
-    # after the last batch, solve everything once from the linear solution (equal to the one-shot result); see
-    # docs/decisions.md#incremental-final-solve
+    # the last streamed batch solved as the one-shot run does, from the streamed segments, point tracks and normals
+    # (False: the warm-started batch's estimate is the result); see docs/decisions.md#streaming-final-solve
     incremental_final_solve: bool = True
-    # a streamed batch before the last joins this many point observations per frame to its joint solve (0: all, as
-    # the last batch and one-shot do); see docs/decisions.md#streamed-point-tracks
+    # a streamed batch before the last runs the joint solve with the point tracks too (False: its estimate, a
+    # preview, is the motion model's; the last batch runs it); see docs/decisions.md#previews-without-the-joint-solve
+    incremental_joint: bool = False
+    # ... and joins this many point observations per frame to it (0: all, as the last batch and one-shot do); see
+    # docs/decisions.md#streamed-point-tracks
     incremental_points_per_frame: int = 40
     # phases >= 2: absolute prior at the preprocessed (vanishing-point) rotations (deg; 0: off); see
     # docs/decisions.md#rotation-prior

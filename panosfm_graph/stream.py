@@ -5,15 +5,16 @@
 frames only, as they arrive: line segment detection (§3.1, the costliest stage, in a worker pool kept
 across batches), the point tracks (extended into the new frames, :class:`points.PointTracker`) and the
 surface normals (§3.2) of the new frames and of the old frames whose fusion neighbourhood they join
-(``normals.fuse_deg``). The Manhattan frame and the rotations (§3.1) are warm-started from the last batch
-(:func:`lines.refine_warm`); tracking, relations (§3.2), the linear solve (§3.3) and the bundle adjustment
-(§3.4, the point tracks joined) run again over all frames so far, a batch before the last with
-``graph.incremental_points_per_frame`` point observations per frame (docs/decisions.md#streamed-point-tracks).
-The last batch (``add_frames(..., final=True)``) joins every observation; with
-``graph.incremental_final_solve`` it is the final full solve instead: every stage over all frames from the
-same segments and point tracks, as the one-shot :func:`pipeline.run_pipeline` (:meth:`Reconstruction.finish`
-solves so after any batch). :func:`stream_capture` feeds a capture directory to it, N frames at a time
-(``panosfm run --incremental N``). Figures: docs/benchmarks.md#streaming-2026-12-06.
+(``normals.fuse_deg``) or whose rotation moved (``normals.stream_keep_deg``). The Manhattan frame (refined,
+not voted again) and the rotations (§3.1) are warm-started from the last batch (:func:`lines.refine_warm`);
+tracking, relations (§3.2), the linear solve (§3.3) and the bundle adjustment (§3.4, the motion model with the
+point tracks) run again over all frames so far. A batch before the last is a preview: no joint solve with the
+point tracks (``graph.incremental_joint``; docs/decisions.md#previews-without-the-joint-solve). The last batch
+(``add_frames(..., final=True)``) joins every observation; with ``graph.incremental_final_solve`` it is the final
+full solve instead: every stage over all frames from the same segments, point tracks and (where the rotations
+hardly moved) normals, as the one-shot :func:`pipeline.run_pipeline` (:meth:`Reconstruction.finish` solves so
+after any batch). :func:`stream_capture` feeds a capture directory to it, N frames at a time
+(``panosfm run --incremental N``). Figures: docs/benchmarks.md#streaming-with-point-tracks-2026-12-07.
 """
 from __future__ import annotations
 
@@ -74,13 +75,17 @@ class Reconstruction:
         self._estimate_focal = estimate_focal
         self._keep_images = reader is None and config.normals.source == "model"
         self._images: list[np.ndarray] = []
-        self._greys: list[np.ndarray] = []  # without a reader: the grey frames the point tracks read
+        # the grey frames the point tracks read: without a reader all, with one the last batch's (read once, not twice)
+        self._greys: dict[int, np.ndarray] = {}
         self._tracker = None  # points.PointTracker over the frames so far
         self._detected: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._thumbs: list[bytes] = []
         self._timestamps = np.zeros(0)
         self._imu = np.zeros((0, 3, 3))
         self._normals: NormalMaps | None = None
+        self._made_axes = np.zeros((0, 3, 3))  # per frame: the camera-frame Manhattan axes its normal map was made with
+        self._made_K = np.eye(3)  # ... and the camera (an estimated focal length may change)
+        self._made_R = np.zeros((0, 3, 3))  # ... and the rotations its world normals are expressed with
         self._pool = None
         self.focal: Any = None  # lines.focal.FocalEstimate where estimated
         self.preprocessed: Preprocessed | None = None
@@ -129,7 +134,9 @@ class Reconstruction:
         self._detected.extend(detected)
         self._thumbs.extend(thumbs)
         self._images.extend(kept)
-        self._greys.extend(greys)
+        if self._reader is not None:
+            self._greys.clear()
+        self._greys.update(zip(range(self.n_frames - len(greys), self.n_frames), greys))
         self._timestamps = np.concatenate([self._timestamps, ts])
         self._imu = np.concatenate([self._imu, R])
         sol = self._solve(full=final and self.config.graph.incremental_final_solve, last=final, timings=timings)
@@ -215,7 +222,7 @@ class Reconstruction:
                 thumbs.append(jpeg_thumbnail(im, min(self._thumb_width, im.shape[1])))
             if self._keep_images:
                 kept.append(im)
-            if self._reader is None and self._track_points:
+            if self._track_points:
                 greys.append(cv2.cvtColor(im, cv2.COLOR_BGR2GRAY))
             if self._pool is None:
                 out.append(detect_frame(im, cfg, K, dist))
@@ -249,10 +256,10 @@ class Reconstruction:
     def _solve(self, *, full: bool, last: bool, timings: dict[str, float]) -> Solution:
         """Returns the estimate over the frames so far: stages after detection (module docstring).
 
-        ``full``: every stage as the one-shot run does (preprocessing from the IMU, every frame's normals,
-        the focal length over all frames), from the point tracks so far; else warm-started, the normals of the
-        frames the batch changed. ``last``: every point observation in the joint solve (else
-        ``graph.incremental_points_per_frame``).
+        ``full``: every stage as the one-shot run does (preprocessing from the IMU, the focal length over all
+        frames), from the point tracks so far; else warm-started. Either way the normals of the frames the batch
+        changed (:meth:`_normals_of`). ``last``: the joint solve with every point observation (else a preview:
+        ``graph.incremental_joint``, ``graph.incremental_points_per_frame``).
         """
         from .lines import refine_manhattan_and_rotations, refine_warm, track_lines
         from .linear import solve_linear
@@ -260,9 +267,11 @@ class Reconstruction:
         from .relations import detect_relations
 
         cfg = self.config
-        if not last:  # a preview: the joint solve with the motion model's few observations per frame
+        if not last:  # a preview: no joint solve, or one with the motion model's few observations per frame
             cfg = dataclasses.replace(cfg, points=dataclasses.replace(
                 cfg.points, per_frame_joint=int(cfg.graph.incremental_points_per_frame)))
+            if not cfg.graph.incremental_joint:
+                cfg = dataclasses.replace(cfg, graph=dataclasses.replace(cfg.graph, points_joint_max_line_rms_ratio=0.0))
         segments = self.segments
         try:
             if self._estimate_focal and (full or self.focal is None):
@@ -281,7 +290,7 @@ class Reconstruction:
         with stage("track", timings):
             tracks = track_lines(cap, pre, cfg)
         with stage("normals", timings):
-            normals = self._normals_of(cap, pre, full)
+            normals = self._normals_of(cap, pre)
         with stage("relations", timings):
             relations = detect_relations(pre, tracks, normals, cap.camera, cfg.relations)
         with stage("linear", timings):
@@ -302,7 +311,8 @@ class Reconstruction:
         return bool(self.config.points.enabled)
 
     def _grey(self, i: int) -> np.ndarray:
-        return self._greys[i] if self._reader is None else cv2.cvtColor(self._reader(i), cv2.COLOR_BGR2GRAY)
+        g = self._greys.get(i)
+        return g if g is not None else cv2.cvtColor(self._reader(i), cv2.COLOR_BGR2GRAY)
 
     def _points(self, cap: Capture, pre: Preprocessed) -> PointTracks:
         """Returns the point tracks of the frames so far (``points/tracking.py``): the new frames' steps added to
@@ -314,21 +324,44 @@ class Reconstruction:
         self._tracker.extend(cap, pre.R_wc, grey=self._grey)
         return self._tracker.tracks()
 
-    def _normals_of(self, cap: Capture, pre: Preprocessed, full: bool) -> NormalMaps:
-        """Returns the normal maps (paper §3.2): of the new frames and of the old ones whose fusion
-        neighbourhood (``normals.fuse_deg``) they join; the other old frames keep theirs."""
+    def _normals_of(self, cap: Capture, pre: Preprocessed) -> NormalMaps:
+        """Returns the normal maps (paper §3.2): of the new frames, of the old ones whose fusion neighbourhood
+        (``normals.fuse_deg``) they join and of those whose camera-frame Manhattan axes moved more than
+        ``normals.stream_keep_deg`` since their map was made; the other old frames keep theirs, turned with their
+        camera where it turned more than that (the final solve's rotations may lie a heading away from a warm
+        start's; docs/decisions.md#streamed-normals)."""
         from .normals import estimate_normals
 
-        old = 0 if (full or self._normals is None) else self._normals.maps.shape[0]
-        frames = None
+        cfg = self.config.normals
+        keep = np.cos(np.radians(max(float(cfg.stream_keep_deg), 0.0)))
+        axes = np.einsum("fji,kj->fik", pre.R_wc, pre.manhattan.directions)  # (F, 3, 3), column k: R^T d_k
+        same_camera = np.array_equal(self._made_K, cap.camera.K)
+        old = 0 if self._normals is None or not same_camera else self._normals.maps.shape[0]
+        F, frames, previous = cap.n_frames, None, None
+        made_axes, made_R = axes.copy(), pre.R_wc.copy()
         if old:
-            axes = pre.R_wc[:, :, 2]
-            deg = max(float(self.config.normals.fuse_deg), 0.0)
-            near = ((axes[:old] @ axes[old:].T).max(axis=1) >= np.cos(np.radians(deg)) if deg > 0
-                    else np.zeros(old, bool))
-            frames = np.concatenate([np.flatnonzero(near), np.arange(old, cap.n_frames)])
-        self._normals = estimate_normals(cap, pre, self.config.normals, frames=frames,
-                                         previous=self._normals if old else None)
+            optical = pre.R_wc[:, :, 2]
+            deg = max(float(cfg.fuse_deg), 0.0)
+            near = ((optical[:old] @ optical[old:].T).max(axis=1) >= np.cos(np.radians(deg)) if deg > 0
+                    and old < F else np.zeros(old, bool))
+            # each axis as made against its nearest axis now (the Manhattan frame's labels may have changed)
+            agree = np.abs(np.einsum("fik,fij->fkj", self._made_axes[:old], axes[:old])).max(axis=2).min(axis=1)
+            again = near | (agree < keep)
+            frames = np.concatenate([np.flatnonzero(again), np.arange(old, F)])
+            kept = np.flatnonzero(~again)
+            made_axes[kept], made_R[kept] = self._made_axes[kept], self._made_R[kept]
+            turn = np.einsum("fij,fkj->fik", pre.R_wc[kept], self._made_R[kept])  # R_now R_then^T
+            turned = (np.trace(turn, axis1=1, axis2=2) - 1.0) / 2.0 < keep
+            previous = self._normals
+            if turned.any():
+                maps, f = previous.maps.copy(), kept[turned]
+                maps[f] = np.einsum("fhwi,fji->fhwj", maps[f].astype(np.float32), turn[turned].astype(np.float32),
+                                    optimize=True).astype(np.float16)
+                previous, made_R[f] = dataclasses.replace(previous, maps=maps), pre.R_wc[f]
+            log.info("normals: %d new frames, %d old ones made again (%d joined by the new), %d kept (%d turned)",
+                     F - old, int(again.sum()), int(near.sum()), len(kept), int(turned.sum()))
+        self._normals = estimate_normals(cap, pre, cfg, frames=frames, previous=previous)
+        self._made_axes, self._made_R, self._made_K = made_axes, made_R, cap.camera.K.copy()
         return self._normals
 
     def _focal(self, segments: Segments, timings: dict[str, float]) -> None:
@@ -348,7 +381,7 @@ def stream_capture(capture: Capture, config: Config, *, on_batch: Callable[[int,
 
     Frames are read batch by batch (as they would arrive); ``on_batch(k, solution)`` sees each
     batch's estimate. The last batch is added with ``final=True``: with ``graph.incremental_final_solve`` the
-    final full solve (every stage as the one-shot run, from the streamed segments and point tracks).
+    final full solve (every stage as the one-shot run, from the streamed segments, point tracks and normals).
     """
     n = int(config.graph.incremental_batch or 0)
     if n < 1:

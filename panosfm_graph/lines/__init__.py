@@ -15,7 +15,8 @@ from ..config import Config
 from ..data import UNLABELLED, Capture, ManhattanFrame, Preprocessed, Segments, Tracks
 from ..errors import OnlyVerticalEdgesError
 from .detect import detect_segments
-from .manhattan import check_enough_manhattan, gravity_aligned, label_segments, manhattan_frame
+from .manhattan import check_enough_manhattan, gravity_aligned, label_segments, manhattan_frame, \
+    refined_manhattan_frame
 from .rotations import heading_drift, refine_rotations, rotate_heading
 from .tracking import loop_pairs, track_lines as _track_lines
 
@@ -155,7 +156,7 @@ def _warm_manhattan_frame(segments: Segments, K: np.ndarray, R: np.ndarray, conf
     rotations hold no absolute tilt: a vertical the lines pull off gravity (slanted lines) tilts the rotations,
     which tilt the next batch's vertical further (measured, bedroom seed 1: 0.09, 0.20, 0.32, 0.48, 0.80 deg over
     five batches, the rotations 1.36 deg off at 300 frames against 0.27 from the IMU; docs/decisions.md#warm-vertical)."""
-    mf = manhattan_frame(segments, K, R, config.manhattan, reference=previous)
+    mf = refined_manhattan_frame(segments, K, R, previous, config.manhattan)
     g = np.array([0.0, 0.0, 1.0])
     tilt = float(np.degrees(np.arccos(np.clip(mf.directions[2] @ g, -1.0, 1.0))))
     limit = config.manhattan.warm_vertical_max_deg
