@@ -338,7 +338,7 @@ class Reconstruction:
         same_camera = np.array_equal(self._made_K, cap.camera.K)
         old = 0 if self._normals is None or not same_camera else self._normals.maps.shape[0]
         F, frames, previous = cap.n_frames, None, None
-        made_axes, made_R = axes.copy(), pre.R_wc.copy()
+        made_axes, made_R = axes, pre.R_wc.copy()  # axes: a fresh array
         if old:
             optical = pre.R_wc[:, :, 2]
             deg = max(float(cfg.fuse_deg), 0.0)

@@ -142,11 +142,7 @@ def manhattan_frame(
     cfg = _manhattan_config(config)
     g = np.asarray(gravity, dtype=np.float64)
     g = g / np.linalg.norm(g)
-    if segments.n < cfg.min_segments:
-        raise TooFewLinesError(
-            f"only {segments.n} line segments were detected (at least {cfg.min_segments} needed to find "
-            "the room's Manhattan directions); the frames may show a textureless close-up"
-        )
+    _check_enough_segments(segments, cfg)
     normals = world_normals(segments, K, R_wc)
     weights = segments.lengths.astype(np.float64)
     bins = sphere_bins(cfg.sphere_bins)
@@ -178,13 +174,20 @@ def refined_manhattan_frame(segments: Segments, K: np.ndarray, R_wc: np.ndarray,
     step 3 from ``previous``'s directions), for a warm start whose frames grew (streaming; ours: the vote over all
     frames so far cost 0.6-1.6 s a batch at 250 frames, docs/decisions.md#warm-manhattan-frame)."""
     cfg = _manhattan_config(config)
-    if segments.n < cfg.min_segments:
-        raise TooFewLinesError(f"only {segments.n} line segments were detected (at least {cfg.min_segments} needed "
-                               "to find the room's Manhattan directions)")
+    _check_enough_segments(segments, cfg)
     normals = world_normals(segments, K, R_wc)
     D = _refine_frame(normals, segments.lengths.astype(np.float64), np.asarray(previous.directions, np.float64),
                       np.cos(np.radians(cfg.label_angle_deg)))
     return align_to(ManhattanFrame(directions=_vertical_up_near_gravity(D, np.array([0.0, 0.0, 1.0]), cfg)), previous)
+
+
+def _check_enough_segments(segments: Segments, cfg: ManhattanConfig) -> None:
+    """Raises :class:`TooFewLinesError` where too few segments were detected to find the Manhattan directions."""
+    if segments.n < cfg.min_segments:
+        raise TooFewLinesError(
+            f"only {segments.n} line segments were detected (at least {cfg.min_segments} needed to find "
+            "the room's Manhattan directions); the frames may show a textureless close-up"
+        )
 
 
 def _vertical_up_near_gravity(D: np.ndarray, g: np.ndarray, cfg: ManhattanConfig) -> np.ndarray:
