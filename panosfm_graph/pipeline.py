@@ -14,12 +14,9 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import logging
-import platform
-import resource
 import shutil
 import threading
 import time
-from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -29,10 +26,11 @@ import numpy as np
 from . import __version__
 from .cache import StageCache, stable_hash, stage_code_hash
 from .config import Config
-from .data import (RELATION_NAMES, Capture, NormalMaps, PointTracks, Preprocessed, Relations, Segments, Solution,
+from .data import (Capture, NormalMaps, PointTracks, Preprocessed, Relations, Segments, Solution,
                    Thumbnails, Tracks)
 from .errors import InputError
 from .progress import stage
+from .summary import build_summary, peak_memory_mb, unregistered_why
 
 log = logging.getLogger("panosfm")
 
@@ -148,13 +146,6 @@ def capture_identity(capture: Capture) -> str:
                        cam.model, cam.width, cam.height, cam.params, capture.R_wc_imu)
 
 
-def peak_memory_mb() -> float:
-    """Returns this process's peak resident memory in MB (children included)."""
-    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    return max(own, kids) / 1024.0
-
-
 def check_output_dir(out_dir: Path) -> Path:
     """Returns the absolute ``out_dir`` after checking a result can be written there (InputError if not)."""
     from .export import check_output_dir as check
@@ -226,7 +217,7 @@ def run_pipeline(capture_path: str | Path, out_dir: str | Path, config: Config =
 
     with stage("export", timings):
         with atomic_output_dir(out_dir, keep=CACHE_KEEP) as tmp:
-            summary = _summary(capture, segments, result, config, timings, resumed, t_start)
+            summary = build_summary(capture, segments, result, config, timings, resumed, t_start)
             solved = (result.solution.residuals or {}) if result.solution is not None else {}
             summary["warnings"] = warnings + list(solved.get("warnings", []))
             _export(tmp, capture, segments, result, summary, rerun=rerun, spawn=spawn, views=views)
@@ -407,19 +398,27 @@ def _linear(capture: Capture, pre: Preprocessed, tracks: Tracks, relations: Rela
 
 def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
                    on_batch: Callable[[int, Solution], None] | None,
-                   points: Callable[[], PointTracks] | None = None) -> Solution:
+                   points: Callable[[], PointTracks] | None = None, points_first: bool = True) -> Solution:
+    """The bundle adjustment stage (paper §3.4 and our additions: spin style, motion model, point tracks).
+    ``points_first``: the point tracks' own placement before the steady style's trial (a stream's preview whose last
+    batch kept the steady style tries it first: docs/decisions.md#points-before-the-spin-style)."""
     from .graph import (adjust_with_points, bundle_adjust, bundle_adjust_incremental, drop_lines_beyond_room,
-                        place_by_motion_model, solve_at_final_scale, steady_or_hand_held)
+                        place_by_motion_model, place_by_points_alone, points_replace_lines, solve_at_final_scale,
+                        steady_or_hand_held, steady_tried)
+    from .graph.style import circle_rms_arm
 
-    def place(sol: Solution) -> Solution:
+    with_points = points is not None and config.points.enabled
+
+    def place(sol: Solution, free: Solution | None = None) -> Solution:
         """The frames the lines leave without a pose placed by the motion model and the point tracks where the std
-        is small enough, the BA with the point tracks joined (graph/joint_points.py), lines beyond the room dropped."""
-        with_points = points is not None and config.points.enabled
+        is small enough (``free``: the points' own placement of ``sol``, made before), the BA with the point tracks
+        joined (graph/joint_points.py), lines beyond the room dropped."""
         joint = with_points and config.graph.points_joint_max_line_rms_ratio > 0
-        if with_points and (joint or (config.graph.motion_model and not sol.registered.all())):
+        if with_points and result.points is None and (joint or (config.graph.motion_model and
+                                                                 not sol.registered.all())):
             result.points = points()
         sol = place_by_motion_model(pre, result.tracks, sol, config.graph, points=result.points,
-                                    points_config=config.points, relations=result.relations)
+                                    points_config=config.points, relations=result.relations, free=free)
         sol = adjust_with_points(pre, result.tracks, result.relations, sol, result.points, config.graph,
                                  config.points) if joint else sol
         return drop_lines_beyond_room(sol, config.graph.max_line_distance_ratio)
@@ -456,179 +455,42 @@ def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
     else:  # solved again at its final scale only if the spin style keeps it (docs/decisions.md#deferred-re-solve)
         sol = bundle_adjust(pre, result.tracks, result.relations, result.linear, config.graph, resolve=False)
         resolved = False
+    hand = free = None
+    if not resolved and with_points and points_first and steady_tried(sol, config.graph):
+        # the point tracks first: where they place every frame and put the lines' frames elsewhere, the steady
+        # style's solve would be thrown away (docs/decisions.md#points-before-the-spin-style)
+        hand = solve_at_final_scale(pre, result.tracks, result.relations, result.linear, config.graph, sol)
+        result.points = points()
+        free = place_by_points_alone(pre, result.tracks, hand, config.graph, result.points, config.points)
+        rms = circle_rms_arm(free, pre.manhattan.directions, config.graph) if free is not None else None
+        if rms is not None and rms > config.graph.steady_max_rms_arm and points_replace_lines(hand, free,
+                                                                                               config.graph):
+            log.info("auto spin style: the point tracks place every frame %.1f %% of the arm off one circle: "
+                     "hand-held, the steady solve not tried", 100 * rms)
+            check = {"skipped": "the point tracks place every frame, off one circle", "points_rms_arm": rms,
+                     "max_rms_arm": config.graph.steady_max_rms_arm}
+            return place(*_styled({"spin_style": "hand-held", "steady_check": check}, hand, free))
     # the steady linear solve is not a stage of its own: its residuals ride in the result (_linear_residuals)
     sol, steady_linear = steady_or_hand_held(pre, result.tracks, result.relations, result.linear.camera,
                                              config.linear, config.graph, sol)
-    if steady_linear is None and not resolved:
-        sol = solve_at_final_scale(pre, result.tracks, result.relations, result.linear, config.graph, sol)
-    return place(sol)
+    if steady_linear is not None or resolved:
+        return place(sol)
+    if hand is None:
+        return place(solve_at_final_scale(pre, result.tracks, result.relations, result.linear, config.graph, sol))
+    return place(*_styled({k: sol.residuals[k] for k in ("spin_style", "steady_check") if k in sol.residuals},
+                          hand, free))
+
+
+def _styled(style: dict, *solutions: Solution | None) -> tuple[Solution | None, ...]:
+    """Returns ``solutions`` with what the spin style decided in their residuals (the points' placement made before
+    the style's trial carries it as the placement from the styled solution would)."""
+    for s in solutions:
+        if s is not None:
+            s.residuals.update(style)
+    return solutions
 
 
 # --- outputs ----------------------------------------------------------------------------------------
-
-def unregistered_why(result: RunResult, n_frames: int) -> list[str]:
-    """Returns, per frame, why it is not registered ("registered" where it is), in words.
-
-    The linear solve's registration criteria (:func:`linear.register_frames`) say why it left a
-    frame out; a frame it kept that the bundle adjustment dropped could not be determined there.
-    """
-    from .linear import REASON_BUNDLE_ADJUST, UNREGISTERED_REASONS
-
-    codes = np.ones(n_frames, np.int64)  # no linear solve: as if no line
-    linear = _linear_residuals(result)
-    if linear is not None and "unregistered_reason_codes" in linear:
-        codes = np.asarray(linear["unregistered_reason_codes"], np.int64)
-    sol = result.solution
-    if sol is not None and result.linear is not None:
-        codes = np.where((codes == 0) & ~sol.registered, REASON_BUNDLE_ADJUST, codes)  # 0: the linear solve's
-    why = [UNREGISTERED_REASONS[c] for c in codes]
-    if sol is None:
-        return why
-    sigma = sol.residuals.get("frame_sigma_rel") or [None] * n_frames
-    bound = (sol.residuals.get("motion_model") or {}).get("max_sigma_rel")
-    for i in range(n_frames):
-        if sol.registered[i]:
-            why[i] = UNREGISTERED_REASONS[0]
-        elif sigma[i] is not None and bound is not None:
-            why[i] = f"{why[i]}; the motion model's std is over {100 * bound:.1f} % of the spin's diameter"
-    return why
-
-
-def _linear_residuals(result: RunResult) -> dict | None:
-    """Returns the residuals of the linear solve the result rests on (the steady one where the auto style chose it)."""
-    sol = result.solution
-    if sol is not None and isinstance(sol.residuals, dict) and "linear_steady" in sol.residuals:
-        return sol.residuals["linear_steady"]
-    return result.linear.residuals if result.linear is not None else None
-
-
-def _summary(capture: Capture, segments: Segments, result: RunResult, config: Config,
-             timings: dict[str, float], resumed: list[str], t_start: float) -> dict:
-    from .export import package_versions
-
-    sol = result.solution
-    pre = result.preprocessed
-    n = capture.n_frames
-    registered = int(sol.registered.sum()) if sol is not None else 0
-    why = unregistered_why(result, n)
-    # floor lines holding a metric scale: few of them (one is common) make it fragile (README)
-    linear_res = _linear_residuals(result)
-    n_floor = int(linear_res.get("floor_count", 0) or 0) if linear_res is not None else 0
-    if linear_res is not None:
-        linear_res = dict(linear_res)
-        linear_res.pop("unregistered_reason_codes", None)
-    summary: dict[str, Any] = {
-        "panosfm_version": __version__,
-        "capture": str(Path(capture.root).resolve()),
-        "frames": {"total": n, "registered": registered, "registered_ratio": registered / max(n, 1),
-                   "unregistered": [capture.frame_names[i] for i in np.flatnonzero(~sol.registered)]
-                   if sol is not None else list(capture.frame_names),
-                   # why each unregistered frame is (aligned with "unregistered"), and how many per reason
-                   "unregistered_why": [why[i] for i in np.flatnonzero(~sol.registered)] if sol is not None else [],
-                   "unregistered_reasons": dict(Counter(why[i] for i in np.flatnonzero(~sol.registered)))
-                   if sol is not None else {},
-                   # how each frame's position was obtained ("lines", "steady circle", "motion model", "shared
-                   # centre", null: none) and, for frames the motion model placed or tried, its centre's largest std
-                   # over the spin's diameter
-                   **_frame_sources(sol, n, bool(((result.linear.residuals if result.linear is not None else {})
-                                                   .get("zero_baseline") or {}).get("detected")))},
-        "segments": {"total": segments.n,
-                     "manhattan": int(np.sum(pre.labels >= 0)) if pre is not None else 0},
-        "tracks": result.tracks.n if result.tracks is not None else 0,
-        "lines": int(sol.lines.valid.sum()) if sol is not None else 0,
-        "relations": (result.relations.counts() if result.relations is not None
-                      else {k: 0 for k in RELATION_NAMES}),
-        "relations_kept": _relations_kept(result.relations, sol),
-        "metric": bool(sol.metric) if sol is not None else False,
-        "scale": (_scale_text(config.linear.camera_height_m, n_floor, sol.residuals)
-                  if sol is not None and sol.metric else _arbitrary_scale_text(sol, config)),
-        # the focal length: given by camera.json, or estimated from the Manhattan vanishing points (lines/focal.py);
-        # focal_px is the one the outputs use (the bundle adjustment may refine it)
-        "focal": _focal_summary(capture, result, sol),
-        # the parallax test (linear/baseline.py): detected -> one shared centre, no translation solved
-        "zero_baseline": (result.linear.residuals.get("zero_baseline") if result.linear is not None else None),
-        "spin_style": (sol.residuals.get("spin_style") if sol is not None and sol is not result.linear else None),
-        "residuals": {"linear": linear_res,
-                      "bundle_adjust": ({k: v for k, v in sol.residuals.items()
-                                         if k not in ("linear_steady", "frame_source", "frame_sigma_rel")}
-                                        if sol is not None and sol is not result.linear else None)},
-        "seconds": {k: round(v, 3) for k, v in timings.items()},
-        "resumed_stages": resumed,
-        "peak_memory_mb": round(peak_memory_mb(), 1),
-        "config": config.to_dict(),
-        "versions": {"python": platform.python_version(), **package_versions()},
-    }
-    if result.batches:
-        summary["incremental_batches"] = [int(b.registered.sum()) for b in result.batches]
-        summary["incremental_batch_seconds"] = [round(float(b.residuals.get("batch_seconds", 0.0)), 3)
-                                                for b in result.batches]
-        if "stage_seconds" in result.batches[0].residuals:  # streamed (stream.py): each batch's seconds per stage;
-            # batch seconds are latencies: from the batch's last frame read to its estimate
-            summary["incremental_stage_seconds"] = [b.residuals["stage_seconds"] for b in result.batches]
-            lat = summary["incremental_batch_seconds"]
-            summary["incremental_latency_seconds"] = {"median": round(float(np.median(lat)), 3), "max": max(lat)}
-    summary["seconds"]["total"] = round(time.perf_counter() - t_start, 3)
-    return summary
-
-
-def _frame_sources(sol: Solution | None, n: int, zero_baseline: bool = False) -> dict[str, Any]:
-    """Returns summary.json's per-frame sources and motion-model stds, and the count per source ("shared centre":
-    a zero-baseline spin's frames, every one at the one centre)."""
-    if sol is None:
-        return {"by_source": {}, "source": [None] * n, "sigma_rel": [None] * n}
-    fixed = "shared centre" if zero_baseline else "lines"
-    src = sol.residuals.get("frame_source") or [fixed if r else None for r in sol.registered]
-    sig = sol.residuals.get("frame_sigma_rel") or [None] * n
-    return {"by_source": dict(Counter(s for s in src if s is not None)), "source": list(src),
-            "sigma_rel": [None if v is None else round(float(v), 5) for v in sig]}
-
-
-def _focal_summary(capture: Capture, result: RunResult, sol: Solution | None) -> dict[str, Any]:
-    """Returns where the focal length came from and its value (px, and as a horizontal field of view)."""
-    from .capture.camera import hfov_deg
-
-    cam = sol.camera if sol is not None else capture.camera
-    out: dict[str, Any] = {"given": bool(capture.focal_given), "focal_px": float(cam.K[0, 0]),
-                           "hfov_deg": hfov_deg(float(cam.K[0, 0]), cam.width)}
-    est = result.focal
-    if est is not None:
-        out["estimated"] = {"focal_px": est.focal_px, "hfov_deg": est.hfov_deg, "cost": est.cost,
-                            "sharpness": est.sharpness, "frames": est.frames, "segments": est.segments}
-    if result.focal_stitched is not None:
-        out["stitched"] = dataclasses.asdict(result.focal_stitched)
-    return out
-
-
-def _relations_kept(relations: Relations | None, sol: Solution | None) -> dict[str, int]:
-    """Returns the count by type of the relations the solution rests on: kept by it (``Solution.relations_kept``:
-    the floor the linear solve verified, the BA's verification and rejection) between lines it placed."""
-    if relations is None or sol is None:
-        return {k: 0 for k in RELATION_NAMES}
-    kept = sol.relations_kept if len(sol.relations_kept) == relations.n else np.ones(relations.n, bool)
-    return relations.subset(kept & relations.between(sol.lines.valid)).counts()
-
-
-def _scale_text(camera_height_m: float, n_floor: int, residuals: dict) -> str:
-    """Returns how the metric scale was set, for ``summary.json`` and ``panosfm run``."""
-    lowered = float(residuals.get("floor_lowered_by", 1.0) or 1.0) if isinstance(residuals, dict) else 1.0
-    source = (f"floor lowered to the deepest horizontal line (model scaled by 1/{lowered:.2f})" if lowered > 1.0
-              else f"floor from {n_floor} line{'' if n_floor == 1 else 's'}")
-    return f"metric (camera height {camera_height_m:.3f} m, {source})"
-
-
-def _arbitrary_scale_text(sol: Solution | None, config: Config) -> str:
-    """Returns ``arbitrary``, with why where the bundle adjustment took the scale from the spin's arm."""
-    res = sol.residuals if sol is not None and isinstance(sol.residuals, dict) else {}
-    if (res.get("motion_model") or {}).get("anchor_free"):
-        return (f"arbitrary (units about metres: no line fixes a frame, the point tracks place them with the spin's "
-                f"arm taken as {config.graph.metric_arm_fallback_m:g} m forward)")
-    if "scale_from_arm" not in res:
-        return "arbitrary"
-    lo, hi = config.graph.metric_arm_range_m
-    return (f"arbitrary (units about metres: with the floor lines the spin's arm came out "
-            f"{res['spin_arm_m_from_floor']:.2f} m, outside {lo:g}-{hi:g} m, so they were likely not the floor; "
-            f"the arm taken as {config.graph.metric_arm_fallback_m:g} m)")
-
 
 def _export(tmp: Path, capture: Capture, segments: Segments, result: RunResult, summary: dict, *,
             rerun: bool, spawn: bool, views: bool) -> None:

@@ -302,7 +302,10 @@ class Reconstruction:
             with stage("points", timings):
                 points = self._points(cap, pre)
         with stage("bundle_adjust", timings):
-            sol = _bundle_adjust(pre, held, cfg, None, (lambda: points) if points is not None else None)
+            steady = not full and str((self.solution.residuals if self.solution else {}).get("spin_style")).startswith(
+                "steady")  # a preview tries the style the last batch kept first
+            sol = _bundle_adjust(pre, held, cfg, None, (lambda: points) if points is not None else None,
+                                 points_first=not steady)
         self.preprocessed, self.tracks, self.relations, self.linear, self.solution = pre, tracks, relations, linear, sol
         return sol
 
@@ -337,7 +340,7 @@ class Reconstruction:
         axes = np.einsum("fji,kj->fik", pre.R_wc, pre.manhattan.directions)  # (F, 3, 3), column k: R^T d_k
         same_camera = np.array_equal(self._made_K, cap.camera.K)
         old = 0 if self._normals is None or not same_camera else self._normals.maps.shape[0]
-        F, frames, previous = cap.n_frames, None, None
+        F, frames, previous, turn_frames = cap.n_frames, None, None, np.zeros(0, np.int64)
         made_axes, made_R = axes, pre.R_wc.copy()  # axes: a fresh array
         if old:
             optical = pre.R_wc[:, :, 2]
@@ -352,15 +355,17 @@ class Reconstruction:
             made_axes[kept], made_R[kept] = self._made_axes[kept], self._made_R[kept]
             turn = np.einsum("fij,fkj->fik", pre.R_wc[kept], self._made_R[kept])  # R_now R_then^T
             turned = (np.trace(turn, axis1=1, axis2=2) - 1.0) / 2.0 < keep
+            turn_frames, turn = kept[turned], turn[turned].astype(np.float32)
+            made_R[turn_frames] = pre.R_wc[turn_frames]
             previous = self._normals
-            if turned.any():
-                maps, f = previous.maps.copy(), kept[turned]
-                maps[f] = np.einsum("fhwi,fji->fhwj", maps[f].astype(np.float32), turn[turned].astype(np.float32),
-                                    optimize=True).astype(np.float16)
-                previous, made_R[f] = dataclasses.replace(previous, maps=maps), pre.R_wc[f]
             log.info("normals: %d new frames, %d old ones made again (%d joined by the new), %d kept (%d turned)",
                      F - old, int(again.sum()), int(near.sum()), len(kept), int(turned.sum()))
-        self._normals = estimate_normals(cap, pre, cfg, frames=frames, previous=previous)
+        normals = estimate_normals(cap, pre, cfg, frames=frames, previous=previous)
+        if len(turn_frames):  # turned in place, frame by frame: the maps are new, copied from the previous
+            maps = normals.maps
+            for f, T in zip(turn_frames, turn):
+                maps[f] = (maps[f].reshape(-1, 3) @ T.T).reshape(maps.shape[1:])
+        self._normals = normals
         self._made_axes, self._made_R, self._made_K = made_axes, made_R, cap.camera.K.copy()
         return self._normals
 

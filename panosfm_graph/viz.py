@@ -203,7 +203,7 @@ def log_recording(path: str | Path | None, capture: Any, pre: Preprocessed, trac
     pixels wide (``thumbnails`` made during detection are used as they are,
     so frames are not decoded twice); the growing 3D model at most
     ``model_updates`` times.
-    ``frame_status`` (one string per frame, e.g. :func:`pipeline.unregistered_why`) is logged on
+    ``frame_status`` (one string per frame, e.g. :func:`summary.unregistered_why`) is logged on
     the frame timeline, so scrubbing shows why a frame has no pose.
     ``spawn`` also streams to a live viewer (skipped with a warning when none
     can start). The recording is finalised (``disconnect``) even on errors.

@@ -92,7 +92,7 @@ def test_report_says_how_an_arbitrary_scale_was_fixed(tmp_path):
     from types import SimpleNamespace
 
     from panosfm_graph.config import Config
-    from panosfm_graph.pipeline import _arbitrary_scale_text
+    from panosfm_graph.summary import _arbitrary_scale_text
 
     res = {"scale_from_arm": 0.55, "spin_arm_m_from_floor": 0.64, "spin_arm_m": 0.35}
     text = _arbitrary_scale_text(SimpleNamespace(residuals=res), Config())  # only its residuals are read

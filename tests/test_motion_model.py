@@ -14,7 +14,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from panosfm_graph.config import GraphConfig
+from panosfm_graph.config import GraphConfig, PointsConfig
 from panosfm_graph.data import Camera, LineModel, Solution
 from panosfm_graph.graph import place_by_motion_model
 from panosfm_graph.synth import make_scene, spin_params, spin_pose
@@ -317,6 +317,80 @@ def test_line_fixed_frames_the_points_disagree_with_are_replaced_by_the_points_p
     assert kept.residuals["motion_model"]["lines_vs_points_rel"] < 0.01
     assert placed == [True, True, False]  # the points' placement computed once, reused for the comparison
     np.testing.assert_array_equal(kept.centers[fixed], c[fixed])
+
+
+def test_the_points_placement_made_before_is_reused_and_decides_as_the_motion_model_does(monkeypatch):
+    """``place_by_points_alone`` + ``points_replace_lines`` (the pipeline's test before the spin style's trial) say
+    what ``place_by_motion_model`` then does: bent line-fixed frames replaced, true ones kept; given that placement,
+    the motion model does not make it again and gives the same result."""
+    from panosfm_graph.graph import motion_model, place_by_points_alone, points_replace_lines
+
+    R, c = _spin(0.05)
+    fixed = np.arange(F) < 200
+    diameter = 2 * np.hypot(*np.ptp(c[:, :2], axis=0)) / np.sqrt(2)
+    bent = c.copy()
+    bent[:, 0] += 0.06 * diameter * np.sin(np.pi * np.arange(F) / 200) ** 2
+    pts = _point_tracks(R, c)
+    cfg = GraphConfig()
+    for centres, replaced in ((bent, True), (c, False)):
+        pre, tracks, sol = _inputs(R, centres, fixed)
+        free = place_by_points_alone(pre, tracks, sol, cfg, pts, PointsConfig())
+        assert free is not None and free.registered.all()
+        assert points_replace_lines(sol, free, cfg) is replaced
+        placed = []
+        place = motion_model._place
+        monkeypatch.setattr(motion_model, "_place", lambda *a, anchor_free: placed.append(anchor_free) or
+                            place(*a, anchor_free=anchor_free))
+        out = place_by_motion_model(pre, tracks, sol, cfg, points=pts, free=free)
+        monkeypatch.undo()
+        assert placed == ([] if replaced else [False])  # the anchor-free placement not made again
+        assert bool(out.residuals["motion_model"].get("lines_replaced")) is replaced
+        again = place_by_motion_model(pre, tracks, sol, cfg, points=pts)
+        np.testing.assert_allclose(out.centers, again.centers, atol=1e-9)
+    pre, tracks, sol = _inputs(R, c, np.ones(F, bool))  # every frame fixed by lines: nothing for the points to do
+    assert place_by_points_alone(pre, tracks, sol, cfg, pts, PointsConfig()) is None
+    assert place_by_points_alone(pre, tracks, _inputs(R, c, fixed)[2], cfg, None, PointsConfig()) is None
+
+
+def test_the_steady_trial_is_skipped_where_the_point_tracks_replace_the_lines(monkeypatch):
+    """The pipeline's bundle adjustment stage: where the point tracks alone place every frame and put the
+    line-fixed frames elsewhere (bent lines), the steady style's solve is not tried (its result would be thrown
+    away: docs/decisions.md#points-before-the-spin-style) and the result says so; with true lines, or on a steady
+    spin (the points' centres on one circle: the steady style could be kept), the trial runs as before."""
+    from pathlib import Path
+
+    import panosfm_graph.graph as graph
+    from panosfm_graph.config import Config, with_overrides
+    from panosfm_graph.pipeline import RunResult, _bundle_adjust
+
+    fixed = np.arange(F) < 200
+    cfg = with_overrides(Config(), graph={"points_joint_max_line_rms_ratio": 0.0})
+    for sway, bend, skipped in ((0.05, 0.06, True), (0.05, 0.0, False), (0.0, 0.06, False)):
+        R, c = _spin(sway)
+        diameter = 2 * np.hypot(*np.ptp(c[:, :2], axis=0)) / np.sqrt(2)
+        centres = c.copy()
+        centres[:, 0] += bend * diameter * np.sin(np.pi * np.arange(F) / 200) ** 2
+        pts = _point_tracks(R, c)
+        pre, tracks, sol = _inputs(R, centres, fixed)
+        trials = []
+
+        def steady(*a, **k):
+            trials.append(1)
+            hand = a[-1]
+            res = dict(hand.residuals, spin_style="hand-held", steady_check={"kept": False})
+            return dataclasses.replace(hand, residuals=res), None
+
+        monkeypatch.setattr(graph, "bundle_adjust", lambda *a, **k: sol)
+        monkeypatch.setattr(graph, "solve_at_final_scale", lambda *a: a[-1])
+        monkeypatch.setattr(graph, "steady_or_hand_held", steady)
+        run = RunResult(out_dir=Path("."), summary={}, tracks=tracks, relations=None, linear=sol)
+        out = _bundle_adjust(pre, run, cfg, None, lambda: pts)
+        monkeypatch.undo()
+        assert trials == ([] if skipped else [1])
+        assert out.residuals["spin_style"] == "hand-held"
+        assert ("skipped" in out.residuals["steady_check"]) is skipped
+        assert bool(out.residuals["motion_model"].get("lines_replaced")) is (bend > 0)
+        assert out.registered.all()
 
 
 def test_lines_adjusted_at_held_poses_follow_their_relations():

@@ -294,3 +294,35 @@ def test_a_streamed_frame_is_read_once(spin):
                                  final=a == n)
     assert sol.registered.sum() > 0
     assert sorted(reads) == list(range(2 * n)) and set(reads.values()) == {1}, reads.most_common(3)
+
+
+def test_a_preview_tries_the_spin_style_its_last_batch_kept_first(spin, monkeypatch):
+    """The bundle adjustment of a preview whose last batch kept the steady style tries that style before the point
+    tracks' own placement (docs/decisions.md#points-before-the-spin-style); other previews and the final full solve
+    (which must equal the one-shot run) place by the points first."""
+    import dataclasses
+
+    import panosfm_graph.pipeline as pipeline
+    from panosfm_graph.capture import load_capture
+    from panosfm_graph.config import Config
+    from panosfm_graph.stream import Reconstruction
+
+    calls = []
+
+    def adjust(pre, held, cfg, on_batch, points=None, points_first=True):
+        calls.append(points_first)
+        return dataclasses.replace(held.linear, residuals={**held.linear.residuals, "spin_style": style})
+
+    monkeypatch.setattr(pipeline, "_bundle_adjust", adjust)
+    cap = load_capture(spin)
+    with Reconstruction(cap.camera, Config(), reader=cap.reader) as rec:
+        for k, style in enumerate(("hand-held", "steady (auto)", "steady (auto)")):
+            idx = np.arange(40 * k, 40 * (k + 1))
+            rec.add_frames((cap.frame(int(i)) for i in idx), cap.timestamps[idx], cap.R_wc_imu[idx], final=k == 2)
+    assert calls == [True, True, True]  # batch 1 follows a hand-held batch, batch 2 is the final full solve
+    calls.clear()
+    with Reconstruction(cap.camera, Config(), reader=cap.reader) as rec:
+        for k, style in enumerate(("steady (auto)", "hand-held", "steady (auto)", "hand-held")):
+            idx = np.arange(30 * k, 30 * (k + 1))
+            rec.add_frames((cap.frame(int(i)) for i in idx), cap.timestamps[idx], cap.R_wc_imu[idx])
+    assert calls == [True, False, True, False]

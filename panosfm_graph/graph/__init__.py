@@ -108,7 +108,7 @@ from .held_poses import adjust_lines_at_poses
 from .joint_points import adjust_with_points
 from .factor_graph import CHUNK_OBS, FOCAL_PRIOR_FRAC, GAUGE_SIGMA
 from .lm import levenberg_marquardt
-from .motion_model import place_by_motion_model
+from .motion_model import place_by_motion_model, place_by_points_alone, points_replace_lines
 from .problem import (ARM_KEY, DRIFT_KEY, FLOOR_KEY, FOCAL_KEY, center_key, floor_held_scale, line_key, relation_residuals,
                       relation_sigmas, rotation_key, stand_key)
 from .readout import drop_lines_beyond_room, line_extents
@@ -116,14 +116,14 @@ from .rotation_only import rotation_bundle_adjust
 from .scale import _scaled
 from .solve import MAX_REJECT_ROUNDS, bundle_adjust, bundle_adjust_incremental, solve_at_final_scale
 from .spin import fit_spin, spin_arm_length, spin_fit
-from .style import steady_or_hand_held
+from .style import steady_or_hand_held, steady_tried
 
 __all__ = [
     "ARM_KEY", "CHUNK_OBS", "DRIFT_KEY", "FLOOR_KEY", "FOCAL_KEY", "FOCAL_PRIOR_FRAC", "GAUGE_SIGMA", "MAX_REJECT_ROUNDS",
     "adjust_lines_at_poses", "adjust_with_points", "bundle_adjust", "bundle_adjust_incremental", "center_key", "determinacy", "drop_lines_beyond_room",
     "fit_spin", "floor_held_scale",
-    "focal_sigma", "levenberg_marquardt", "line_extents", "line_key", "place_by_motion_model", "relation_residuals", "relation_sigmas",
+    "focal_sigma", "levenberg_marquardt", "line_extents", "line_key", "place_by_motion_model", "place_by_points_alone", "points_replace_lines", "relation_residuals", "relation_sigmas",
     "rotation_bundle_adjust", "rotation_key", "solve_at_final_scale", "spin_arm_length", "spin_fit", "stand_key",
-    "steady_or_hand_held",
+    "steady_or_hand_held", "steady_tried",
     "_scaled",  # tests/test_graph.py
 ]

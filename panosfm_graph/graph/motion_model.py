@@ -66,7 +66,7 @@ MIN_POINT_OBS = 6  # a placed frame with this many point observations is placed 
 
 def place_by_motion_model(pre: Preprocessed, tracks: Tracks, sol: Solution, config: GraphConfig,
                           points: PointTracks | None = None, points_config: PointsConfig = PointsConfig(),
-                          relations: Relations | None = None) -> Solution:
+                          relations: Relations | None = None, free: Solution | None = None) -> Solution:
     """Returns ``sol`` with the frames the motion model places within its sigma bound registered (module docstring).
 
     ``residuals["frame_source"]`` (per frame: "lines", "steady circle" where the steady style placed it,
@@ -78,9 +78,10 @@ def place_by_motion_model(pre: Preprocessed, tracks: Tracks, sol: Solution, conf
     (anchor-free). With enough, the spin is also placed by the points alone and compared with the line-fixed
     frames (:func:`_lines_or_points`): where the two disagree, the lines' solution is wrong and the points'
     is kept. Lines triangulated at the points' poses are then adjusted with the poses held, with ``relations``
-    where given and ``graph.lines_held_poses`` (:func:`~.held_poses.adjust_lines_at_poses`).
+    where given and ``graph.lines_held_poses`` (:func:`~.held_poses.adjust_lines_at_poses`). ``free``: that
+    anchor-free placement of ``sol`` made before (:func:`place_by_points_alone`), not made again.
     """
-    has_points = points is not None and len(points.frame) > 0 and points_config.enabled
+    has_points = _has_points(points, points_config)
     points = points if has_points else None
     if int(sol.registered.sum()) < MIN_FIXED:
         out = _place(pre, tracks, sol, config, points, points_config, anchor_free=has_points)
@@ -90,11 +91,11 @@ def place_by_motion_model(pre: Preprocessed, tracks: Tracks, sol: Solution, conf
             out = _adjust_lines(pre, tracks, relations, out, config)
         return out
     compare = has_points and config.motion_lines_points_max_rel > 0
-    free = None
     if compare and config.motion_model and not sol.registered.all():
         # the points alone first: where they place every frame and disagree with the lines, the anchored placement
         # would be thrown away (measured, a streamed bedroom batch: 50 iterations, 11 s; docs/decisions.md#points-first)
-        free = _place(pre, tracks, sol, config, points, points_config, anchor_free=True)
+        if free is None:
+            free = _place(pre, tracks, sol, config, points, points_config, anchor_free=True)
         if free.registered.all():
             out = _lines_or_points(pre, tracks, sol, None, free, config)
             if out is not None:
@@ -107,6 +108,32 @@ def place_by_motion_model(pre: Preprocessed, tracks: Tracks, sol: Solution, conf
     out = _lines_or_points(pre, tracks, sol, anchored, free, config)
     replaced = out.residuals.get("motion_model", {}).get("lines_replaced", False)
     return _adjust_lines(pre, tracks, relations, out, config) if replaced else out
+
+
+def place_by_points_alone(pre: Preprocessed, tracks: Tracks, sol: Solution, config: GraphConfig,
+                          points: PointTracks | None, points_config: PointsConfig) -> Solution | None:
+    """Returns every frame placed by the point tracks alone, in a gauge of their own (:func:`place_by_motion_model`'s
+    first step where it compares the points with the lines), or None where it would not compare them (no point
+    tracks, no frame left to place, too few line-fixed frames, ``graph.motion_lines_points_max_rel`` 0)."""
+    if not (_has_points(points, points_config) and config.motion_model and config.motion_lines_points_max_rel > 0):
+        return None
+    if sol.registered.all() or int(sol.registered.sum()) < MIN_FIXED:
+        return None
+    return _place(pre, tracks, sol, config, points, points_config, anchor_free=True)
+
+
+def points_replace_lines(sol: Solution, free: Solution, config: GraphConfig) -> bool:
+    """Returns whether :func:`place_by_motion_model` takes ``free`` (:func:`place_by_points_alone` of ``sol``) over
+    the lines: it places every frame and puts the line-fixed frames more than ``graph.motion_lines_points_max_rel``
+    of the diameter from the lines' (:func:`_lines_or_points`)."""
+    if not free.registered.all():
+        return False
+    gap = _lines_points_gap(sol, free)
+    return gap is not None and gap[0] > config.motion_lines_points_max_rel
+
+
+def _has_points(points: PointTracks | None, points_config: PointsConfig) -> bool:
+    return points is not None and len(points.frame) > 0 and points_config.enabled
 
 
 def _adjust_lines(pre: Preprocessed, tracks: Tracks, relations: Relations | None, sol: Solution,
@@ -128,16 +155,12 @@ def _lines_or_points(pre: Preprocessed, tracks: Tracks, sol: Solution, anchored:
     triangulated again at its poses (:func:`lines_at_poses`). Measured, hall seed 12 swaying: the lines'
     frames 6-7 % off the truth, 172 of 300 accurate; the points' 300 (docs/decisions.md#lines-or-points).
     ``anchored`` None (not placed yet; ``free`` places every frame): None wherever ``anchored`` would be returned."""
-    fixed = sol.registered & free.registered
-    if (anchored is not None and free.registered.sum() < anchored.registered.sum()) or fixed.sum() < MIN_FIXED:
+    if anchored is not None and free.registered.sum() < anchored.registered.sum():
         return anchored
-    # both in the refined rotations' world (the points' gauge holds one of them): only a scale and a shift apart
-    src, dst = free.centers[fixed], sol.centers[fixed]
-    xs, xd = src - src.mean(axis=0), dst - dst.mean(axis=0)
-    s = float(np.sum(xs * xd) / max(np.sum(xs * xs), 1e-300))
-    centers = s * (free.centers - src.mean(axis=0)) + dst.mean(axis=0)
-    diameter = float(np.max(pdist(centers[free.registered])))
-    gap = float(np.median(np.linalg.norm(centers[fixed] - sol.centers[fixed], axis=1)) / diameter)
+    gap_centers = _lines_points_gap(sol, free)
+    if gap_centers is None:
+        return anchored
+    gap, centers = gap_centers
     res = dict(anchored.residuals) if anchored is not None else {}
     res["motion_model"] = {**res.get("motion_model", {}), "lines_vs_points_rel": gap}
     if gap <= config.motion_lines_points_max_rel:
@@ -152,6 +175,21 @@ def _lines_or_points(pre: Preprocessed, tracks: Tracks, sol: Solution, anchored:
     out = dataclasses.replace(out, lines=lines_at_poses(pre, tracks, out, only_missing=False))
     res["lines_at_poses"] = int(out.lines.valid.sum())
     return out
+
+
+def _lines_points_gap(sol: Solution, free: Solution) -> tuple[float, np.ndarray] | None:
+    """Returns (the line-fixed frames' median distance from ``free``'s over the diameter, ``free``'s centres moved
+    onto the line-fixed frames by a scale and a shift), or None with fewer than ``MIN_FIXED`` frames in both."""
+    fixed = sol.registered & free.registered
+    if fixed.sum() < MIN_FIXED:
+        return None
+    # both in the refined rotations' world (the points' gauge holds one of them): only a scale and a shift apart
+    src, dst = free.centers[fixed], sol.centers[fixed]
+    xs, xd = src - src.mean(axis=0), dst - dst.mean(axis=0)
+    s = float(np.sum(xs * xd) / max(np.sum(xs * xs), 1e-300))
+    centers = s * (free.centers - src.mean(axis=0)) + dst.mean(axis=0)
+    diameter = float(np.max(pdist(centers[free.registered])))
+    return float(np.median(np.linalg.norm(centers[fixed] - sol.centers[fixed], axis=1)) / diameter), centers
 
 
 def _place(pre: Preprocessed, tracks: Tracks, sol: Solution, config: GraphConfig, points: PointTracks | None,

@@ -9,12 +9,29 @@ import dataclasses
 import logging
 import time
 
+import numpy as np
+
 from ..config import SPIN_STYLES, GraphConfig, LinearConfig
 from ..data import Camera, Preprocessed, Relations, Solution, Tracks
 from ..linear import solve_linear
 from .solve import bundle_adjust
+from .spin import spin_fit
 
 log = logging.getLogger("panosfm.graph")
+
+
+def steady_tried(hand_held: Solution, config: GraphConfig) -> bool:
+    """Returns whether :func:`steady_or_hand_held` solves ``hand_held``'s capture in the steady style too: the auto
+    style on (``graph.steady_auto``, not set steady) and some frames, not all, registered."""
+    reg = hand_held.registered
+    return bool(config.steady_auto and not config.spin_position and reg.any() and not reg.all())
+
+
+def circle_rms_arm(sol: Solution, manhattan: np.ndarray, config: GraphConfig) -> float | None:
+    """Returns the RMS distance of ``sol``'s centres from one circle over its arm (:func:`~.spin.spin_fit`; the
+    steady style is kept at most ``graph.steady_max_rms_arm``), None where the spin turned too little to tell."""
+    fit = spin_fit(sol.centers, sol.R_wc, manhattan, 0.0, config.metric_arm_min_turn_deg)
+    return None if fit is None or fit[0] <= 0 else float(fit[1] / fit[0])
 
 
 def steady_or_hand_held(pre: Preprocessed, tracks: Tracks, relations: Relations, camera: Camera,
@@ -37,7 +54,7 @@ def steady_or_hand_held(pre: Preprocessed, tracks: Tracks, relations: Relations,
     res = dict(hand_held.residuals)
     res["spin_style"] = "steady" if config.spin_position else "hand-held"
     reg = hand_held.registered
-    if not config.steady_auto or config.spin_position or reg.all() or not reg.any():
+    if not steady_tried(hand_held, config):
         return dataclasses.replace(hand_held, residuals=res), None
     t0 = time.perf_counter()
     style = SPIN_STYLES["steady"]
