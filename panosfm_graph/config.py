@@ -395,6 +395,10 @@ class GraphConfig:
     # from the points', the points' poses are kept and the lines triangulated again at them (0: off); see
     # docs/decisions.md#lines-or-points
     motion_lines_points_max_rel: float = 0.01
+    # ... and where they agree, the spin placed again anchored by the line-fixed frames (False: the points' own
+    # placement, moved onto the line-fixed frames, wherever it places every frame: a streamed preview's, see
+    # graph.incremental_anchored); see docs/decisions.md#lighter-previews
+    motion_anchored: bool = True
     # where the point tracks placed the frames, the lines triangulated at those poses are then bundle-adjusted with
     # the poses held: reprojection, colinearity and the kept coplanarity relations (False: triangulated only); see
     # docs/decisions.md#lines-at-held-poses
@@ -424,6 +428,11 @@ class GraphConfig:
     # ... and joins this many point observations per frame to it (0: all, as the last batch and one-shot do); see
     # docs/decisions.md#streamed-point-tracks
     incremental_points_per_frame: int = 40
+    # ... tries the steady spin style (with point tracks; False: hand-held, the points place what the lines leave) and
+    # places the spin anchored by the line-fixed frames (False: motion_anchored off); the last batch does both; see
+    # docs/decisions.md#lighter-previews
+    incremental_steady: bool = False
+    incremental_anchored: bool = False
     # phases >= 2: absolute prior at the preprocessed (vanishing-point) rotations (deg; 0: off); see
     # docs/decisions.md#rotation-prior
     rotation_prior_sigma_deg: float = 0.1

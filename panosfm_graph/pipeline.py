@@ -398,10 +398,8 @@ def _linear(capture: Capture, pre: Preprocessed, tracks: Tracks, relations: Rela
 
 def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
                    on_batch: Callable[[int, Solution], None] | None,
-                   points: Callable[[], PointTracks] | None = None, points_first: bool = True) -> Solution:
-    """The bundle adjustment stage (paper §3.4 and our additions: spin style, motion model, point tracks).
-    ``points_first``: the point tracks' own placement before the steady style's trial (a stream's preview whose last
-    batch kept the steady style tries it first: docs/decisions.md#points-before-the-spin-style)."""
+                   points: Callable[[], PointTracks] | None = None) -> Solution:
+    """The bundle adjustment stage (paper §3.4 and our additions: spin style, motion model, point tracks)."""
     from .graph import (adjust_with_points, bundle_adjust, bundle_adjust_incremental, drop_lines_beyond_room,
                         place_by_motion_model, place_by_points_alone, points_replace_lines, solve_at_final_scale,
                         steady_or_hand_held, steady_tried)
@@ -456,7 +454,7 @@ def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
         sol = bundle_adjust(pre, result.tracks, result.relations, result.linear, config.graph, resolve=False)
         resolved = False
     hand = free = None
-    if not resolved and with_points and points_first and steady_tried(sol, config.graph):
+    if not resolved and with_points and steady_tried(sol, config.graph):
         # the point tracks first: where they place every frame and put the lines' frames elsewhere, the steady
         # style's solve would be thrown away (docs/decisions.md#points-before-the-spin-style)
         hand = solve_at_final_scale(pre, result.tracks, result.relations, result.linear, config.graph, sol)

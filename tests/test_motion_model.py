@@ -347,6 +347,11 @@ def test_the_points_placement_made_before_is_reused_and_decides_as_the_motion_mo
         assert bool(out.residuals["motion_model"].get("lines_replaced")) is replaced
         again = place_by_motion_model(pre, tracks, sol, cfg, points=pts)
         np.testing.assert_allclose(out.centers, again.centers, atol=1e-9)
+    pre, tracks, sol = _inputs(R, c, fixed)  # a streamed preview (graph.motion_anchored off): the points' placement
+    light = place_by_motion_model(pre, tracks, sol, dataclasses.replace(cfg, motion_anchored=False), points=pts)
+    mm = light.residuals["motion_model"]
+    assert mm["lines_replaced"] and mm["anchored"] is False and mm["lines_vs_points_rel"] < 0.01
+    assert light.registered.all() and set(light.residuals["frame_source"]) == {"points"}
     pre, tracks, sol = _inputs(R, c, np.ones(F, bool))  # every frame fixed by lines: nothing for the points to do
     assert place_by_points_alone(pre, tracks, sol, cfg, pts, PointsConfig()) is None
     assert place_by_points_alone(pre, tracks, _inputs(R, c, fixed)[2], cfg, None, PointsConfig()) is None

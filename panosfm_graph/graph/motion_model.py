@@ -163,13 +163,19 @@ def _lines_or_points(pre: Preprocessed, tracks: Tracks, sol: Solution, anchored:
     gap, centers = gap_centers
     res = dict(anchored.residuals) if anchored is not None else {}
     res["motion_model"] = {**res.get("motion_model", {}), "lines_vs_points_rel": gap}
-    if gap <= config.motion_lines_points_max_rel:
+    agree = gap <= config.motion_lines_points_max_rel
+    if agree and (anchored is not None or config.motion_anchored):
         return None if anchored is None else dataclasses.replace(anchored, residuals=res)
-    log.warning("the line-fixed frames lie %.1f %% of the spin's diameter from where the point tracks alone put "
-                "them (at most %.1f %%): the point tracks place every frame and the lines are triangulated again",
-                100 * gap, 100 * config.motion_lines_points_max_rel)
+    if agree:  # graph.motion_anchored off (a streamed preview): the points' placement stands
+        log.info("motion model: the point tracks place every frame, the line-fixed frames %.1f %% of the spin's "
+                 "diameter from them; not placed again anchored by them", 100 * gap)
+    else:
+        log.warning("the line-fixed frames lie %.1f %% of the spin's diameter from where the point tracks alone put "
+                    "them (at most %.1f %%): the point tracks place every frame and the lines are triangulated again",
+                    100 * gap, 100 * config.motion_lines_points_max_rel)
     res = dict(free.residuals)
-    res["motion_model"] = {**res["motion_model"], "lines_vs_points_rel": gap, "lines_replaced": True}
+    res["motion_model"] = {**res["motion_model"], "lines_vs_points_rel": gap, "lines_replaced": True,
+                           "anchored": False}
     res.pop("spin_arm_m", None)
     out = dataclasses.replace(free, centers=centers, metric=sol.metric, residuals=res)
     out = dataclasses.replace(out, lines=lines_at_poses(pre, tracks, out, only_missing=False))
