@@ -454,9 +454,9 @@ def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
         sol = bundle_adjust(pre, result.tracks, result.relations, result.linear, config.graph, resolve=False)
         resolved = False
     hand = free = None
-    if not resolved and with_points and steady_tried(sol, config.graph):
-        # the point tracks first: where they place every frame and put the lines' frames elsewhere, the steady
-        # style's solve would be thrown away (docs/decisions.md#points-before-the-spin-style)
+    if not resolved and with_points and config.graph.motion_model and steady_tried(sol, config.graph):
+        # the point tracks first: where they place every frame off one circle and put the line-fixed frames
+        # elsewhere, the steady style's solve would be rejected (docs/decisions.md#points-before-the-spin-style)
         hand = solve_at_final_scale(pre, result.tracks, result.relations, result.linear, config.graph, sol)
         result.points = points()
         free = place_by_points_alone(pre, result.tracks, hand, config.graph, result.points, config.points)

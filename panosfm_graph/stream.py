@@ -331,12 +331,11 @@ class Reconstruction:
         return self._tracker.tracks()
 
     def _normals_of(self, cap: Capture, pre: Preprocessed) -> NormalMaps:
-        """Returns the normal maps (paper §3.2): of the new frames and of the old ones whose fusion neighbourhood
-        (``normals.fuse_deg``) they join; the other old frames keep theirs, turned where they would have come out
-        more than ``normals.stream_keep_deg`` otherwise (docs/decisions.md#streamed-normals). An orientation map's
-        normals are the Manhattan directions its pixels are labelled with: it follows the directions' turn since it
-        was made (docs/decisions.md#normal-maps-turned-with-the-manhattan-frame). Another source's map follows its
-        camera's turn, and is made again where the camera-frame Manhattan axes moved more than that bound."""
+        """Returns the normal maps (paper §3.2): of the new frames, of the old ones whose fusion neighbourhood
+        (``normals.fuse_deg``) they join and of those whose camera-frame Manhattan axes moved more than
+        ``normals.stream_keep_deg`` since their map was made; the other old frames keep theirs, turned with their
+        camera where it turned more than that (the final solve's rotations may lie a heading away from a warm
+        start's; docs/decisions.md#streamed-normals)."""
         from .normals import estimate_normals
 
         cfg = self.config.normals
@@ -351,20 +350,16 @@ class Reconstruction:
             deg = max(float(cfg.fuse_deg), 0.0)
             near = ((optical[:old] @ optical[old:].T).max(axis=1) >= np.cos(np.radians(deg)) if deg > 0
                     and old < F else np.zeros(old, bool))
-            if cfg.source == "orientation-map":
-                again, turn = self._manhattan_turns(pre.manhattan.directions, near)
-            else:  # each axis as made against its nearest axis now (the Manhattan frame's labels may have changed)
-                agree = np.abs(np.einsum("fik,fij->fkj", self._made_axes[:old], axes[:old])).max(axis=2).min(axis=1)
-                again = near | (agree < keep)
-                turn = np.einsum("fij,fkj->fik", pre.R_wc[:old], self._made_R[:old])  # R_now R_then^T
+            # each axis as made against its nearest axis now (the Manhattan frame's labels may have changed)
+            agree = np.abs(np.einsum("fik,fij->fkj", self._made_axes[:old], axes[:old])).max(axis=2).min(axis=1)
+            again = near | (agree < keep)
             frames = np.concatenate([np.flatnonzero(again), np.arange(old, F)])
             kept = np.flatnonzero(~again)
-            turned = (np.trace(turn[kept], axis1=1, axis2=2) - 1.0) / 2.0 < keep
-            turn_frames, turn = kept[turned], turn[kept[turned]].astype(np.float32)
-            held = kept[~turned]  # as they were made: their record stays
-            made_axes[held], made_R[held] = self._made_axes[held], self._made_R[held]
-            if cfg.source != "orientation-map":  # a turned map keeps the axes it was made with, in its camera now
-                made_axes[turn_frames] = self._made_axes[turn_frames]
+            made_axes[kept], made_R[kept] = self._made_axes[kept], self._made_R[kept]
+            turn = np.einsum("fij,fkj->fik", pre.R_wc[kept], self._made_R[kept])  # R_now R_then^T
+            turned = (np.trace(turn, axis1=1, axis2=2) - 1.0) / 2.0 < keep
+            turn_frames, turn = kept[turned], turn[turned].astype(np.float32)
+            made_R[turn_frames] = pre.R_wc[turn_frames]
             previous = self._normals
             log.info("normals: %d new frames, %d old ones made again (%d joined by the new), %d kept (%d turned)",
                      F - old, int(again.sum()), int(near.sum()), len(kept), int(turned.sum()))
@@ -376,21 +371,6 @@ class Reconstruction:
         self._normals = normals
         self._made_axes, self._made_R, self._made_K = made_axes, made_R, cap.camera.K.copy()
         return self._normals
-
-    def _manhattan_turns(self, directions: np.ndarray, near: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Returns (which old frames to make again, (old, 3, 3) world turns of the others' maps): each map's world
-        normals, the Manhattan directions it was made with (its record: R^T d_k in its camera, and R), onto the
-        nearest direction now, sign kept. Made again: ``near``, and where the match is no rotation (two directions
-        onto one)."""
-        then = np.einsum("fij,fjk->fik", self._made_R, self._made_axes)  # (old, 3, 3): columns d_k then, world
-        now = np.asarray(directions, np.float64).T  # columns d_k now
-        cos = np.einsum("fij,ik->fjk", then, now)  # [f, j, k] = d_j(then) . d_k(now)
-        k = np.abs(cos).argmax(axis=2)  # (old, 3)
-        sign = np.sign(np.take_along_axis(cos, k[..., None], axis=2)[..., 0])
-        target = now[:, k].transpose(1, 0, 2) * sign[:, None, :]  # (old, 3, 3): column j the match of d_j(then)
-        turn = np.einsum("fij,fkj->fik", target, then)  # target then^T
-        ok = (np.sort(k, axis=1) == np.arange(3)).all(axis=1) & (np.linalg.det(turn) > 0.5)
-        return near | ~ok, np.where(ok[:, None, None], turn, np.eye(3))
 
     def _focal(self, segments: Segments, timings: dict[str, float]) -> None:
         """Estimates the focal length from the frames so far (``lines/focal.py``) and takes it."""
