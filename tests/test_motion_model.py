@@ -281,6 +281,16 @@ def test_lines_beyond_the_room_are_left_out():
     assert drop_lines_beyond_room(dataclasses.replace(sol, lines=closer), 4.0).lines.valid.all()  # a hall's edge
 
 
+def _bent_spin(sway_m: float, bend: float):
+    """(R, true centres, the centres the "lines" give: pushed sideways by up to ``bend`` of the diameter, the
+    line-fixed frames (the first 200), the diameter): a wrong lines' solution, as on hall seed 12."""
+    R, c = _spin(sway_m)
+    diameter = 2 * np.hypot(*np.ptp(c[:, :2], axis=0)) / np.sqrt(2)
+    bent = c.copy()
+    bent[:, 0] += bend * diameter * np.sin(np.pi * np.arange(F) / 200) ** 2
+    return R, c, bent, np.arange(F) < 200, diameter
+
+
 def test_line_fixed_frames_the_points_disagree_with_are_replaced_by_the_points_poses(monkeypatch):
     """Lines fix two thirds of a swaying spin, but bent: their centres pushed sideways by up to 6 % of the
     diameter (a wrong lines' solution, as on hall seed 12). The points alone place the spin and put those
@@ -295,11 +305,7 @@ def test_line_fixed_frames_the_points_disagree_with_are_replaced_by_the_points_p
     monkeypatch.setattr(motion_model, "_place", lambda *a, anchor_free: placed.append(anchor_free) or
                         place(*a, anchor_free=anchor_free))
 
-    R, c = _spin(0.05)
-    fixed = np.arange(F) < 200
-    diameter = 2 * np.hypot(*np.ptp(c[:, :2], axis=0)) / np.sqrt(2)
-    bent = c.copy()
-    bent[:, 0] += 0.06 * diameter * np.sin(np.pi * np.arange(F) / 200) ** 2
+    R, c, bent, fixed, diameter = _bent_spin(0.05, 0.06)
     pts = _point_tracks(R, c)
     pre, tracks, sol = _inputs(R, bent, fixed)
     out = place_by_motion_model(pre, tracks, sol, GraphConfig(), points=pts)
@@ -325,11 +331,7 @@ def test_the_points_placement_made_before_is_reused_and_decides_as_the_motion_mo
     the motion model does not make it again and gives the same result."""
     from panosfm_graph.graph import motion_model, place_by_points_alone, points_replace_lines
 
-    R, c = _spin(0.05)
-    fixed = np.arange(F) < 200
-    diameter = 2 * np.hypot(*np.ptp(c[:, :2], axis=0)) / np.sqrt(2)
-    bent = c.copy()
-    bent[:, 0] += 0.06 * diameter * np.sin(np.pi * np.arange(F) / 200) ** 2
+    R, c, bent, fixed, diameter = _bent_spin(0.05, 0.06)
     pts = _point_tracks(R, c)
     cfg = GraphConfig()
     for centres, replaced in ((bent, True), (c, False)):
@@ -368,13 +370,9 @@ def test_the_steady_trial_is_skipped_where_the_point_tracks_replace_the_lines(mo
     from panosfm_graph.config import Config, with_overrides
     from panosfm_graph.pipeline import RunResult, _bundle_adjust
 
-    fixed = np.arange(F) < 200
     cfg = with_overrides(Config(), graph={"points_joint_max_line_rms_ratio": 0.0})
     for sway, bend, skipped in ((0.05, 0.06, True), (0.05, 0.0, False), (0.0, 0.06, False)):
-        R, c = _spin(sway)
-        diameter = 2 * np.hypot(*np.ptp(c[:, :2], axis=0)) / np.sqrt(2)
-        centres = c.copy()
-        centres[:, 0] += bend * diameter * np.sin(np.pi * np.arange(F) / 200) ** 2
+        R, c, centres, fixed, _ = _bent_spin(sway, bend)
         pts = _point_tracks(R, c)
         pre, tracks, sol = _inputs(R, centres, fixed)
         trials = []
