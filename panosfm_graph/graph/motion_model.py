@@ -154,7 +154,8 @@ def _lines_or_points(pre: Preprocessed, tracks: Tracks, sol: Solution, anchored:
     moved onto the line-fixed frames by a scale and a shift (both are in the refined rotations' world), every line
     triangulated again at its poses (:func:`lines_at_poses`). Measured, hall seed 12 swaying: the lines'
     frames 6-7 % off the truth, 172 of 300 accurate; the points' 300 (docs/decisions.md#lines-or-points).
-    ``anchored`` None (not placed yet; ``free`` places every frame): None wherever ``anchored`` would be returned."""
+    ``anchored`` None (not placed yet; ``free`` places every frame): None wherever ``anchored`` would be returned,
+    but with ``graph.motion_anchored`` off (a streamed preview) ``free`` moved onto the line-fixed frames then too."""
     if anchored is not None and free.registered.sum() < anchored.registered.sum():
         return anchored
     gap_centers = _lines_points_gap(sol, free)
