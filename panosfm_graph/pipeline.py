@@ -400,10 +400,9 @@ def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
                    on_batch: Callable[[int, Solution], None] | None,
                    points: Callable[[], PointTracks] | None = None) -> Solution:
     """The bundle adjustment stage (paper §3.4 and our additions: spin style, motion model, point tracks)."""
-    from .graph import (adjust_with_points, bundle_adjust, bundle_adjust_incremental, drop_lines_beyond_room,
-                        place_by_motion_model, place_by_points_alone, points_replace_lines, solve_at_final_scale,
-                        steady_or_hand_held, steady_tried)
-    from .graph.style import circle_rms_arm
+    from .graph import (adjust_with_points, bundle_adjust, bundle_adjust_incremental, circle_rms_arm,
+                        drop_lines_beyond_room, place_by_motion_model, place_by_points_alone, points_replace_lines,
+                        solve_at_final_scale, steady_or_hand_held, steady_tried)
 
     with_points = points is not None and config.points.enabled
 

@@ -115,12 +115,12 @@ from .readout import drop_lines_beyond_room, line_extents
 from .rotation_only import rotation_bundle_adjust
 from .scale import _scaled
 from .solve import MAX_REJECT_ROUNDS, bundle_adjust, bundle_adjust_incremental, solve_at_final_scale
-from .spin import fit_spin, spin_arm_length, spin_fit
+from .spin import circle_rms_arm, fit_spin, spin_arm_length, spin_fit
 from .style import steady_or_hand_held, steady_tried
 
 __all__ = [
     "ARM_KEY", "CHUNK_OBS", "DRIFT_KEY", "FLOOR_KEY", "FOCAL_KEY", "FOCAL_PRIOR_FRAC", "GAUGE_SIGMA", "MAX_REJECT_ROUNDS",
-    "adjust_lines_at_poses", "adjust_with_points", "bundle_adjust", "bundle_adjust_incremental", "center_key", "determinacy", "drop_lines_beyond_room",
+    "adjust_lines_at_poses", "adjust_with_points", "bundle_adjust", "bundle_adjust_incremental", "center_key", "circle_rms_arm", "determinacy", "drop_lines_beyond_room",
     "fit_spin", "floor_held_scale",
     "focal_sigma", "levenberg_marquardt", "line_extents", "line_key", "place_by_motion_model", "place_by_points_alone", "points_replace_lines", "relation_residuals", "relation_sigmas",
     "rotation_bundle_adjust", "rotation_key", "solve_at_final_scale", "spin_arm_length", "spin_fit", "stand_key",

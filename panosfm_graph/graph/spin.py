@@ -75,6 +75,14 @@ def spin_fit(centers: np.ndarray, R_wc: np.ndarray, manhattan: np.ndarray, knot_
     return float(np.hypot(*arm)), rms
 
 
+def circle_rms_arm(sol: Solution, manhattan: np.ndarray, config: GraphConfig) -> float | None:
+    """Returns the RMS horizontal distance of ``sol``'s centres from one circle over its arm (:func:`spin_fit` about
+    one stand point; the steady style is kept at most ``graph.steady_max_rms_arm``), None where the spin turned less
+    than ``graph.metric_arm_min_turn_deg`` or has no arm."""
+    fit = spin_fit(sol.centers, sol.R_wc, manhattan, 0.0, config.metric_arm_min_turn_deg)
+    return None if fit is None or fit[0] <= 0 else float(fit[1] / fit[0])
+
+
 def _check_steady(sol: Solution, manhattan: np.ndarray, config: GraphConfig) -> None:
     """Warns where a run set for a steady spin (``spin_position``) finds the centres off one circle.
 
@@ -83,8 +91,7 @@ def _check_steady(sol: Solution, manhattan: np.ndarray, config: GraphConfig) -> 
     enough. Above ``steady_max_rms_arm`` with ``spin_position`` on, the spin was likely hand-held
     (measured: the steady style's worst capture 46 % centre error on spins swaying 5 cm).
     """
-    fit = spin_fit(sol.centers, sol.R_wc, manhattan, 0.0, config.metric_arm_min_turn_deg)
-    rel = None if fit is None or fit[0] <= 0 else fit[1] / fit[0]
+    rel = circle_rms_arm(sol, manhattan, config)
     sol.residuals["spin_circle_rms_arm"] = rel
     if config.spin_position and rel is not None and rel > config.steady_max_rms_arm:
         _warn(sol.residuals, f"the camera centres lie {100 * rel:.1f} % of the arm off one circle (a steady spin: "

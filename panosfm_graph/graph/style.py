@@ -9,13 +9,10 @@ import dataclasses
 import logging
 import time
 
-import numpy as np
-
 from ..config import SPIN_STYLES, GraphConfig, LinearConfig
 from ..data import Camera, Preprocessed, Relations, Solution, Tracks
 from ..linear import solve_linear
 from .solve import bundle_adjust
-from .spin import spin_fit
 
 log = logging.getLogger("panosfm.graph")
 
@@ -25,13 +22,6 @@ def steady_tried(hand_held: Solution, config: GraphConfig) -> bool:
     style on (``graph.steady_auto``, not set steady) and some frames, not all, registered."""
     reg = hand_held.registered
     return bool(config.steady_auto and not config.spin_position and reg.any() and not reg.all())
-
-
-def circle_rms_arm(sol: Solution, manhattan: np.ndarray, config: GraphConfig) -> float | None:
-    """Returns the RMS distance of ``sol``'s centres from one circle over its arm (:func:`~.spin.spin_fit`; the
-    steady style is kept at most ``graph.steady_max_rms_arm``), None where the spin turned too little to tell."""
-    fit = spin_fit(sol.centers, sol.R_wc, manhattan, 0.0, config.metric_arm_min_turn_deg)
-    return None if fit is None or fit[0] <= 0 else float(fit[1] / fit[0])
 
 
 def steady_or_hand_held(pre: Preprocessed, tracks: Tracks, relations: Relations, camera: Camera,
