@@ -238,7 +238,8 @@ def _cmd_import(args: argparse.Namespace) -> int:
     from .phone import format_import, import_capture
 
     res = import_capture(args.video, args.sensors, args.out, fmt=args.format, focal_px=args.focal,
-                         hfov_deg=args.hfov, offset_guess_s=args.offset_guess, max_offset_s=args.max_offset)
+                         hfov_deg=args.hfov, offset_guess_s=args.offset_guess, max_offset_s=args.max_offset,
+                         line_timing=args.line_timing)
     print(format_import(res))
     return 0
 
@@ -312,6 +313,9 @@ def _add_import_parser(sub) -> None:
                    help="sensor clock minus video clock, roughly (default: from a Sensor Logger video's name, else 0)")
     m.add_argument("--max-offset", type=float, default=5.0, metavar="S",
                    help="search the offset within the guess +- this (default 5)")
+    m.add_argument("--no-line-timing", dest="line_timing", action="store_false",
+                   help="where the images' turns leave the offset loose (a smooth spin), keep it instead of timing "
+                        "the video by the lines' rotations (about 10 s for 300 frames)")
     m.set_defaults(func=_cmd_import)
 
 

@@ -43,6 +43,15 @@ def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arctan2(np.linalg.norm(sin2, axis=-1), cos2))
 
 
+def heading_aligned_errors_deg(R_est: np.ndarray, R_true: np.ndarray) -> np.ndarray:
+    """Returns (N,) the angles in degrees between ``R_est`` and ``R_true`` (N, 3, 3 world_from_camera) after the
+    best rotation of ``R_est`` about world z (an attitude's heading is arbitrary)."""
+    M = np.einsum("nij,nkj->ik", R_true, R_est)  # sum R_true R_est^T
+    yaw = np.arctan2(M[1, 0] - M[0, 1], M[0, 0] + M[1, 1])
+    c, s = np.cos(yaw), np.sin(yaw)
+    return rotation_angle_deg(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ R_est, R_true)
+
+
 def turned_degrees(R_wc: np.ndarray) -> np.ndarray:
     """Returns (F,) the cumulative angle (degrees) the camera has turned since the first frame."""
     R = np.asarray(R_wc, dtype=np.float64)

@@ -16,7 +16,7 @@ import pytest
 from panosfm_graph.capture import load_capture, read_imu
 from panosfm_graph.cli import FORMAT_CHOICES, main
 from panosfm_graph.errors import InputError
-from panosfm_graph.geometry import rotation_angle_deg
+from panosfm_graph.geometry import heading_aligned_errors_deg, rotation_angle_deg
 from panosfm_graph.phone import FORMATS, import_capture, read_sensors
 from panosfm_graph.synth import phone_recording, spin_params, spin_pose, synthesize
 from panosfm_graph.synth.phone import LANDSCAPE_CAMERA_FROM_DEVICE
@@ -40,15 +40,6 @@ def imported(recording, tmp_path_factory):
     return import_capture(rec / "video.mp4", rec / "sensors", out)
 
 
-def _heading_aligned_errors(R_est: np.ndarray, R_true: np.ndarray) -> np.ndarray:
-    """Returns per-frame rotation errors (deg) after the best rotation about world z (the heading is arbitrary)."""
-    M = np.einsum("nij,nkj->ik", R_true, R_est)  # sum R_true R_est^T
-    yaw = np.arctan2(M[1, 0] - M[0, 1], M[0, 0] + M[1, 1])
-    c, s = np.cos(yaw), np.sin(yaw)
-    Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    return rotation_angle_deg(Rz @ R_est, R_true)
-
-
 def test_import_finds_offset_axes_bias_and_attitude(recording, imported):
     cap, rec = recording
     truth = json.loads((rec / "truth.json").read_text())
@@ -58,7 +49,7 @@ def test_import_finds_offset_axes_bias_and_attitude(recording, imported):
     np.testing.assert_allclose(imported.attitude.gyro_bias, truth["gyro_bias_rad_s"], atol=3e-4)
     t, R_imu = read_imu(imported.path / "imu.csv")
     gt = load_capture(cap).ground_truth
-    err = _heading_aligned_errors(R_imu, gt.R_wc)
+    err = heading_aligned_errors_deg(R_imu, gt.R_wc)
     assert np.median(err) < 0.5 and err.max() < 1.0, (np.median(err), err.max())
 
 
@@ -78,9 +69,9 @@ def test_import_without_tremor_or_lever_fit_is_worse_but_sound(recording, tmp_pa
     sensors = read_sensors(rec / "sensors")
     t = np.arange(N) / 30.0 + OFFSET
     gt = load_capture(cap).ground_truth
-    e_fit = np.median(_heading_aligned_errors(
+    e_fit = np.median(heading_aligned_errors_deg(
         smooth_attitude(sensors, t, LANDSCAPE_CAMERA_FROM_DEVICE).R_wc, gt.R_wc))
-    e_raw = np.median(_heading_aligned_errors(
+    e_raw = np.median(heading_aligned_errors_deg(
         smooth_attitude(sensors, t, LANDSCAPE_CAMERA_FROM_DEVICE, lever_arm=False).R_wc, gt.R_wc))
     assert e_fit < e_raw
 

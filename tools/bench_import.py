@@ -8,7 +8,8 @@ ground truth. Printed as a table; ``--json`` writes every figure.
 
     python tools/bench_import.py --scenes living,bedroom,office --seeds 0 --frames 300 --out OUT
 
-Figures per capture: the time offset's error (ms), the camera axes found, the gyroscope bias
+Figures per capture: the time offset's error (ms; and the images' turns' own where the lines
+re-timed a smooth spin), the camera axes found, the gyroscope bias
 error, the imported attitude's rotation error before any refinement (after the best heading;
 median and max, degrees), the focal length the pipeline estimates, and for the original and
 the imported captures: registered and accurate frames, rotation error (rotation-only alignment)
@@ -28,19 +29,11 @@ import numpy as np
 from panosfm_graph.capture import load_capture, read_imu
 from panosfm_graph.config import Config
 from panosfm_graph.evaluate import evaluate_reconstruction
-from panosfm_graph.geometry import rotation_angle_deg
+from panosfm_graph.geometry import heading_aligned_errors_deg
 from panosfm_graph.phone import import_capture
 from panosfm_graph.pipeline import run_pipeline
 from panosfm_graph.synth import phone_recording, synthesize
 from panosfm_graph.synth.phone import LANDSCAPE_CAMERA_FROM_DEVICE
-
-
-def heading_aligned_errors(R_est: np.ndarray, R_true: np.ndarray) -> np.ndarray:
-    """Returns per-frame rotation errors (deg) after the best rotation about world z."""
-    M = np.einsum("nij,nkj->ik", R_true, R_est)
-    yaw = np.arctan2(M[1, 0] - M[0, 1], M[0, 0] + M[1, 1])
-    c, s = np.cos(yaw), np.sin(yaw)
-    return rotation_angle_deg(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ R_est, R_true)
 
 
 def _scores(capture: Path, out: Path) -> dict:
@@ -69,9 +62,13 @@ def one(root: Path, scene: str, seed: int, frames: int, size: tuple[int, int], t
         imp = import_capture(rec / "video.mp4", rec / "sensors", root / f"import_{label}", focal_px=focal)
         secs = time.perf_counter() - t0
         _, R_imu = read_imu(imp.path / "imu.csv")
-        err = heading_aligned_errors(R_imu, gt.R_wc)
+        err = heading_aligned_errors_deg(R_imu, gt.R_wc)
         shutil.copytree(cap / "ground_truth", imp.path / "ground_truth")
-        row[label] = {"import_s": round(secs, 2), "offset_err_ms": 1e3 * (imp.sync.offset_s - truth["offset_s"]),
+        row[label] = {"import_s": round(secs, 2), "offset_err_ms": 1e3 * (imp.offset_s - truth["offset_s"]),
+                      "offset_sigma_ms": 1e3 * (imp.line_timing or imp.sync).offset_sigma_s,
+                      "offset_from": "lines" if imp.line_timing else "turns",
+                      "turns_offset_err_ms": 1e3 * (imp.sync.offset_s - truth["offset_s"]),
+                      "turns_offset_sigma_ms": 1e3 * imp.sync.offset_sigma_s,
                       "axes_ok": bool(np.array_equal(imp.sync.camera_from_device, LANDSCAPE_CAMERA_FROM_DEVICE)),
                       "bias_err_deg_s": float(np.degrees(np.linalg.norm(imp.attitude.gyro_bias
                                                                         - truth["gyro_bias_rad_s"]))),
@@ -107,7 +104,8 @@ def main(argv=None) -> int:
             r = rows[-1]
             for label in ("focal_given", "focal_unknown"):
                 g = r[label]
-                print(f"{scene} s{seed} {label:13s} offset {g['offset_err_ms']:+.2f} ms, axes "
+                print(f"{scene} s{seed} {label:13s} offset {g['offset_err_ms']:+.2f} ms +- {g['offset_sigma_ms']:.1f} "
+                      f"({g['offset_from']}; turns {g['turns_offset_err_ms']:+.2f} +- {g['turns_offset_sigma_ms']:.1f}), axes "
                       f"{'ok' if g['axes_ok'] else 'WRONG'}, bias err {g['bias_err_deg_s']:.4f} deg/s, attitude "
                       f"{g['attitude_median_deg']:.3f}/{g['attitude_max_deg']:.3f} deg, import {g['import_s']} s; run: "
                       f"{g['run']}", flush=True)

@@ -4,7 +4,9 @@ The steps, each in its module: read the sensor log (:mod:`.logs`), the
 camera's turn between consecutive frames from feature flow
 (:mod:`.video_rotation`), the time offset and the camera's axes in the
 phone's (:mod:`.sync`), the attitude at every frame from a GTSAM AHRS
-smoother (:mod:`.attitude`). Written: ``video.<ext>`` (a copy),
+smoother (:mod:`.attitude`); where the images' turns leave the offset
+loose (a spin without tremor), the offset again from the lines' rotations
+(:mod:`.line_timing`) and the attitude at it. Written: ``video.<ext>`` (a copy),
 ``camera.json`` (without ``params`` when the focal length is not given: the
 pipeline estimates it), ``imu.csv`` (one attitude per frame, on the video's
 clock) and ``import.json`` (what the import found). Nothing is written when
@@ -29,8 +31,9 @@ from ..errors import InputError
 from ..geometry import matrix_to_quat_wxyz
 from ..synth.writer import atomic_capture_dir
 from .attitude import Attitude, smooth_attitude
+from .line_timing import LineTiming, retime_by_lines
 from .logs import RawSensors, read_sensors
-from .sync import Sync, estimate_sync
+from .sync import Sync, covering_offsets, estimate_sync
 from .video_rotation import frame_rotations
 
 log = logging.getLogger("panosfm.phone")
@@ -50,6 +53,12 @@ class ImportResult:
     attitude: Attitude
     focal_px: float | None  # None: not given, left to the pipeline
     warnings: tuple[str, ...]
+    line_timing: LineTiming | None = None  # where the lines' rotations re-timed a loose offset (written)
+
+    @property
+    def offset_s(self) -> float:
+        """The time offset written (sensor clock minus video clock): the lines' where they re-timed it."""
+        return self.line_timing.offset_s if self.line_timing is not None else self.sync.offset_s
 
 
 def _epoch_from_name(video: Path) -> float | None:
@@ -60,7 +69,8 @@ def _epoch_from_name(video: Path) -> float | None:
 
 def import_capture(video: str | Path, sensors: str | Path, out: str | Path, fmt: str = "auto",
                    focal_px: float | None = None, hfov_deg: float | None = None, offset_guess_s: float | None = None,
-                   max_offset_s: float = 5.0, camera_from_device: np.ndarray | None = None) -> ImportResult:
+                   max_offset_s: float = 5.0, camera_from_device: np.ndarray | None = None,
+                   line_timing: bool = True) -> ImportResult:
     """Builds the capture directory ``out`` from a phone ``video`` and its ``sensors`` log (folder or .zip).
 
     ``focal_px`` or ``hfov_deg`` give the focal length (else ``camera.json``
@@ -68,7 +78,8 @@ def import_capture(video: str | Path, sensors: str | Path, out: str | Path, fmt:
     clock minus video clock) centres the search of +- ``max_offset_s``
     (default: from the video's name when it is an epoch time and the log's
     clock is known, else 0); ``camera_from_device`` fixes the camera's axes
-    in the phone's instead of estimating them. Raises
+    in the phone's instead of estimating them; ``line_timing`` lets the
+    lines' rotations time a spin the images' turns leave loose. Raises
     :class:`~panosfm_graph.errors.InputError` (one line) for bad input.
     """
     video, out = Path(video), Path(out)
@@ -115,9 +126,6 @@ def import_capture(video: str | Path, sensors: str | Path, out: str | Path, fmt:
             raise InputError(f"the gyroscope's turns do not match the video's (best correlation {sync.correlation:.2f} "
                              f"at offset {sync.offset_s:+.3f} s): a log of another recording, or a wrong "
                              f"--offset-guess?", sensors)
-        if sync.offset_sigma_s > MAX_OFFSET_SIGMA_S:
-            warnings.append(f"the time offset is loose (+- {1e3 * sync.offset_sigma_s:.0f} ms): the spin is too "
-                            f"smooth to time the video against the gyroscope")
         if not sync.axes_snapped:
             warnings.append("the camera's axes are not along the phone's (fitted rotation kept); check the log")
         raw, flipped = _orient_up(raw, t_frames + sync.offset_s, sync.camera_from_device)
@@ -125,13 +133,26 @@ def import_capture(video: str | Path, sensors: str | Path, out: str | Path, fmt:
             warnings.append("the accelerometer pointed down in the images: its sign was flipped (an iOS log without "
                             "metadata.csv?)")
         att = smooth_attitude(raw, t_frames + sync.offset_s, sync.camera_from_device)
-        q = matrix_to_quat_wxyz(att.R_wc)
-        rows = "".join(f"{t:.9f},{a:.9f},{b:.9f},{c:.9f},{d:.9f}\n" for t, (a, b, c, d) in zip(t_frames, q))
-        (tmp / "imu.csv").write_text("timestamp_s,qw,qx,qy,qz\n" + rows)
+        _write_imu(tmp / "imu.csv", t_frames, att.R_wc)
+        timing, tried = None, None
+        if sync.offset_sigma_s > MAX_OFFSET_SIGMA_S and line_timing:
+            tried, att_lines = _retime(tmp, raw, sync, att, t_frames, guess, max_offset_s, warnings)
+            if tried is not None and tried.offset_sigma_s < sync.offset_sigma_s:  # the tighter of the two is kept
+                timing, att = tried, att_lines
+                _write_imu(tmp / "imu.csv", t_frames, att.R_wc)
+        sigma = timing.offset_sigma_s if timing is not None else sync.offset_sigma_s
+        if sigma > MAX_OFFSET_SIGMA_S:
+            warnings.append(f"the time offset is loose (+- {1e3 * sigma:.0f} ms): the spin is too smooth to time the "
+                            f"video against the gyroscope")
         report = {
             "video": str(video), "sensors": str(sensors), "sensor_log": raw.source, "frames": int(n),
             "frame_times_from": t_from, "gyro_rate_hz": round(raw.gyro_rate_hz, 2),
-            "time_offset_s": sync.offset_s, "time_offset_sigma_s": sync.offset_sigma_s, "offset_guess_s": guess,
+            "time_offset_s": timing.offset_s if timing else sync.offset_s, "time_offset_sigma_s": sigma,
+            "time_offset_from": "lines' rotations" if timing else "images' turns", "offset_guess_s": guess,
+            "turns_time_offset_s": sync.offset_s, "turns_time_offset_sigma_s": sync.offset_sigma_s,
+            "line_timing": None if tried is None else {
+                "offset_s": tried.offset_s, "offset_sigma_s": tried.offset_sigma_s, "used": timing is not None,
+                "offsets_s": list(tried.offsets_s), "frames": tried.frames, "seconds": round(tried.seconds, 2)},
             "sync_correlation": sync.correlation, "sync_residual_deg": sync.residual_deg, "image_turn_scale": sync.scale,
             "camera_from_device": sync.camera_from_device.tolist(), "camera_axes_snapped": sync.axes_snapped,
             "gyro_bias_rad_s": att.gyro_bias.tolist(), "still_s": att.still_s,
@@ -140,7 +161,30 @@ def import_capture(video: str | Path, sensors: str | Path, out: str | Path, fmt:
         (tmp / "import.json").write_text(json.dumps(report, indent=1) + "\n")
     for wmsg in warnings:
         log.info("%s", wmsg)
-    return ImportResult(out, int(n), raw.source, sync, att, focal_px, tuple(warnings))
+    return ImportResult(out, int(n), raw.source, sync, att, focal_px, tuple(warnings), timing)
+
+
+def _write_imu(path: Path, t_frames: np.ndarray, R_wc: np.ndarray) -> None:
+    """Writes ``imu.csv``: one attitude per frame, on the video's clock."""
+    q = matrix_to_quat_wxyz(R_wc)
+    rows = "".join(f"{t:.9f},{a:.9f},{b:.9f},{c:.9f},{d:.9f}\n" for t, (a, b, c, d) in zip(t_frames, q))
+    path.write_text("timestamp_s,qw,qx,qy,qz\n" + rows)
+
+
+def _retime(tmp: Path, raw: RawSensors, sync: Sync, att: Attitude, t_frames: np.ndarray, guess: float,
+            max_offset_s: float, warnings: list[str]) -> tuple[LineTiming | None, Attitude | None]:
+    """Returns the lines' timing of the capture being written in ``tmp`` and the attitude at it, or (None, None)
+    with a warning where the lines cannot time it; ``att``: the attitude at the turns' offset."""
+    from ..capture import load_capture
+
+    lo, hi = covering_offsets(t_frames, raw, guess, max_offset_s)
+    log.info("the images' turns leave the time offset loose (+- %.0f ms); timing it by the lines' rotations",
+             1e3 * sync.offset_sigma_s)
+    try:
+        return retime_by_lines(load_capture(tmp), raw, sync.offset_s, sync.camera_from_device, lo, hi, attitude=att)
+    except InputError as e:
+        warnings.append(f"the lines could not time the video either ({e})")
+        return None, None
 
 
 def _orient_up(raw: RawSensors, t: np.ndarray, camera_from_device: np.ndarray) -> tuple[RawSensors, bool]:
@@ -155,11 +199,17 @@ def format_import(res: ImportResult) -> str:
     """Returns the CLI report of an import: a few lines."""
     s, a = res.sync, res.attitude
     focal = f"{res.focal_px:.1f} px" if res.focal_px is not None else "not given (panosfm run estimates it)"
+    lt = res.line_timing
+    if lt is None:
+        how = (f"from the images' turns: correlation {s.correlation:.3f}, off-axis residual {s.residual_deg:.3f} deg "
+               f"per frame, {s.intervals} frame pairs")
+    else:
+        how = (f"from the lines' rotations: {lt.frames} frames, {lt.seconds:.1f} s; the images' turns gave "
+               f"{s.offset_s:+.4f} s +- {1e3 * s.offset_sigma_s:.0f} ms")
+    sigma = lt.offset_sigma_s if lt is not None else s.offset_sigma_s
     lines = [
         f"wrote {res.path}: {res.n_frames} frames, sensors {res.sensors}",
-        f"time offset   sensor clock = video clock {s.offset_s:+.4f} s +- {1e3 * s.offset_sigma_s:.1f} ms "
-        f"(correlation {s.correlation:.3f}, off-axis residual {s.residual_deg:.3f} deg per frame, {s.intervals} "
-        f"frame pairs)",
+        f"time offset   sensor clock = video clock {res.offset_s:+.4f} s +- {1e3 * sigma:.1f} ms ({how})",
         "camera axes   " + ("along the phone's: " if s.axes_snapped else "fitted: ")
         + "; ".join(" ".join(f"{v:+.0f}" if s.axes_snapped else f"{v:+.2f}" for v in row)
                     for row in s.camera_from_device),

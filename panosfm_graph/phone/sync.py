@@ -8,7 +8,9 @@ and scaled (parallax and a provisional focal length stretch the image turn).
 rotation between the two sets of turns (Kabsch, scale free: a correlation of
 the vectors), snaps that rotation to the nearest of the 24 axis permutations
 when it lies within :data:`SNAP_DEG` (a phone's camera is mounted along the
-phone's axes), and refines ``o`` below a millisecond on the turns' components
+phone's axes; the offset is then searched again with the axes fixed: at a
+wrong offset a free rotation fits 16 degrees off them on a smooth spin),
+and refines ``o`` below a millisecond on the turns' components
 off the spin axis (the wobble in pitch and roll carries the timing; the turn
 about the spin axis is nearly constant and biased by parallax).
 """
@@ -24,7 +26,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from ..errors import InputError
 from .logs import RawSensors
 
-SNAP_DEG = 15.0
+SNAP_DEG = 30.0  # the 24 axis permutations lie 90 deg apart: within 30 deg of one is unambiguous
 GRID_STEP_S = 0.005
 TRIM = 0.9  # the fine fit keeps this share of the intervals with the smallest residuals
 
@@ -35,7 +37,7 @@ class Sync:
     ``omega_camera = camera_from_device @ omega_device``."""
 
     offset_s: float
-    offset_sigma_s: float  # from the fit's curvature and residual (intervals taken as independent: a lower bound)
+    offset_sigma_s: float  # from the fit's curvature and residual, over the residuals' independent intervals
     camera_from_device: np.ndarray  # (3, 3)
     axes_snapped: bool  # camera_from_device is an axis permutation (else the fitted rotation)
     scale: float  # image turn / gyroscope turn (parallax, focal length error)
@@ -79,7 +81,7 @@ def _axis_rotations() -> np.ndarray:
 AXIS_ROTATIONS = _axis_rotations()  # (24, 3, 3)
 
 
-def _kabsch(H: np.ndarray) -> np.ndarray:
+def kabsch(H: np.ndarray) -> np.ndarray:
     """Returns the rotations R (..., 3, 3) maximising trace(R^T H) for correlation matrices H = sum img gyro^T."""
     U, _, Vt = np.linalg.svd(H)
     d = np.sign(np.linalg.det(U @ Vt))
@@ -87,6 +89,48 @@ def _kabsch(H: np.ndarray) -> np.ndarray:
     D[..., 0, 0] = D[..., 1, 1] = 1.0
     D[..., 2, 2] = d
     return U @ D @ Vt
+
+
+def covering_offsets(t_frames: np.ndarray, sensors: RawSensors, guess_s: float = 0.0,
+                     max_offset_s: float = np.inf) -> tuple[float, float]:
+    """Returns (lo, hi): the offsets within ``guess_s +- max_offset_s`` at which the gyroscope log covers every
+    frame (lo > hi where none does)."""
+    lo, hi = sensors.t_gyro[0] - t_frames[0], sensors.t_gyro[-1] - t_frames[-1]
+    return max(lo, guess_s - max_offset_s), min(hi, guess_s + max_offset_s)
+
+
+def independent_samples(e: np.ndarray) -> float:
+    """Returns how many independent samples the residual vectors ``e`` (N, k), in time order, are worth:
+    ``N / (1 + 2 sum rho_j)``, their autocorrelation summed up to its first non-positive lag. Systematic errors
+    (parallax, a scene's lines) mislead neighbouring frames alike; counting them as independent made the
+    offset's sigma 5-10 times too small (docs/decisions.md#time-offset-from-the-lines)."""
+    e = np.asarray(e, dtype=np.float64)
+    e = e - e.mean(axis=0)
+    var = float(np.sum(e * e))
+    if len(e) < 2 or var <= 0:
+        return float(len(e))
+    tau = 1.0
+    for lag in range(1, len(e) // 2):
+        rho = float(np.sum(e[lag:] * e[:-lag])) / var
+        if rho <= 0:
+            break
+        tau += 2.0 * rho
+    return len(e) / tau
+
+
+def _grid_scores(Q: Slerp, ta: np.ndarray, tb: np.ndarray, img: np.ndarray, grid: np.ndarray,
+                 camera_from_device: np.ndarray | None) -> np.ndarray:
+    """Returns each offset's score: the squared correlation of the image turns ``img`` (M, 3) with the gyroscope's
+    over the same intervals, turned by the best rotation (Kabsch) or by ``camera_from_device``, signed."""
+    score = np.empty(len(grid))
+    for c0 in range(0, len(grid), 256):  # bounded memory
+        o = grid[c0:c0 + 256, None]
+        g = gyro_turns(Q, ta[None] + o, tb[None] + o)  # (n, M, 3)
+        H = np.einsum("mi,nmj->nij", img, g)
+        R = kabsch(H) if camera_from_device is None else np.broadcast_to(camera_from_device, H.shape)
+        tr = np.einsum("nij,nij->n", R, H)
+        score[c0:c0 + 256] = np.sign(tr) * tr ** 2 / (np.sum(img ** 2) * np.sum(g ** 2, axis=(1, 2)))
+    return score
 
 
 def estimate_sync(t_frames: np.ndarray, theta_img: np.ndarray, sensors: RawSensors, guess_s: float = 0.0,
@@ -101,30 +145,25 @@ def estimate_sync(t_frames: np.ndarray, theta_img: np.ndarray, sensors: RawSenso
         raise InputError(f"only {int(ok.sum())} frame pairs with a measurable rotation (too dark, blank or blurred)")
     ta, tb, img = t_frames[:-1][ok], t_frames[1:][ok], theta_img[ok]
     Q = gyro_orientation(sensors.t_gyro, sensors.gyro)
-    lo, hi = sensors.t_gyro[0] - t_frames[0], sensors.t_gyro[-1] - t_frames[-1]  # offsets covering every frame
+    lo, hi = covering_offsets(t_frames, sensors)
     grid = np.arange(guess_s - max_offset_s, guess_s + max_offset_s + 1e-9, GRID_STEP_S)
     grid = grid[(grid >= lo) & (grid <= hi)]
     if not len(grid):
         raise InputError(f"the gyroscope log ({sensors.t_gyro[0]:.2f}..{sensors.t_gyro[-1]:.2f} s) does not cover the "
                          f"video ({t_frames[-1] - t_frames[0]:.2f} s) at any offset within {guess_s:+.2f} +- "
                          f"{max_offset_s:g} s (give --offset-guess or a longer log)")
-    score = np.empty(len(grid))
-    for c0 in range(0, len(grid), 256):  # bounded memory
-        o = grid[c0:c0 + 256, None]
-        g = gyro_turns(Q, ta[None] + o, tb[None] + o)  # (n, M, 3)
-        H = np.einsum("mi,nmj->nij", img, g)
-        R = _kabsch(H) if camera_from_device is None else np.broadcast_to(camera_from_device, H.shape)
-        tr = np.einsum("nij,nij->n", R, H)
-        score[c0:c0 + 256] = np.sign(tr) * tr ** 2 / (np.sum(img ** 2) * np.sum(g ** 2, axis=(1, 2)))
+    score = _grid_scores(Q, ta, tb, img, grid, camera_from_device)
     k = int(np.argmax(score))
     o_c = float(grid[k])
-    g = gyro_turns(Q, ta + o_c, tb + o_c)
     if camera_from_device is None:
-        R = _kabsch(np.einsum("mi,mj->ij", img, g))
+        R = kabsch(np.einsum("mi,mj->ij", img, gyro_turns(Q, ta + o_c, tb + o_c)))
         angles = Rotation.from_matrix(np.einsum("kji,jl->kil", AXIS_ROTATIONS, R)).magnitude()
         snapped = bool(angles.min() < np.radians(SNAP_DEG))
-        if snapped:
+        if snapped:  # the offset again with the axes fixed: a free rotation absorbs part of a timing error
             R = AXIS_ROTATIONS[int(np.argmin(angles))]
+            score = _grid_scores(Q, ta, tb, img, grid, R)
+            k = int(np.argmax(score))
+            o_c = float(grid[k])
     else:
         R, snapped = np.asarray(camera_from_device, dtype=np.float64), True
     axis = np.mean(img, axis=0)
@@ -143,8 +182,11 @@ def estimate_sync(t_frames: np.ndarray, theta_img: np.ndarray, sensors: RawSenso
     o_f = float(res.x)
     c, s, e = cost(o_f)
     h = 1e-3
-    curv = (cost(o_f + h)[0] - 2 * c + cost(o_f - h)[0]) / (h * h)
-    n = int(np.sum(e <= np.quantile(e, TRIM)))
+    # the best offset at the end of the log's cover is no minimum: no curvature there
+    curv = (cost(o_f + h)[0] - 2 * c + cost(o_f - h)[0]) / (h * h) if lo <= o_f - h and o_f + h <= hi else 0.0
+    gc = gyro_turns(Q, ta + o_f, tb + o_f) @ R.T
+    kept = e <= np.quantile(e, TRIM)
+    n = independent_samples(((img - s * gc) @ P)[kept])
     sigma = float(np.sqrt(2 * c / (n * curv))) if curv > 0 else float("inf")
     return Sync(offset_s=o_f, offset_sigma_s=sigma, camera_from_device=R, axes_snapped=snapped, scale=s,
                 residual_deg=float(np.degrees(np.sqrt(c))), correlation=float(score[k]), intervals=int(ok.sum()))
