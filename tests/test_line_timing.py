@@ -147,3 +147,13 @@ def test_looser_lines_leave_the_turns_offset_written(tmp_path):
     assert res.line_timing is None and res.offset_s == res.sync.offset_s == report["time_offset_s"]
     assert report["time_offset_from"] == "images' turns"
     assert any("loose" in w for w in res.warnings)
+
+
+def test_timings_that_disagree_are_warned_about():
+    from panosfm_graph.phone.importer import timings_disagree
+
+    # office seed 7 swaying without tremor: the turns -56.7 +- 22.6 ms off, the lines +44.6 +- 13.3 ms
+    msg = timings_disagree(0.237 - 0.0567, 0.0226, 0.237 + 0.0446, 0.0133)
+    assert msg is not None and "101 ms apart" in msg and "3.9 sigma" in msg
+    assert timings_disagree(0.285, 0.028, 0.256, 0.010) is None  # living seed 1: 1 sigma apart
+    assert timings_disagree(0.3, float("inf"), 0.24, 0.01) is None  # a loose turns' offset says nothing

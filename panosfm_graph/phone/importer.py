@@ -40,6 +40,7 @@ log = logging.getLogger("panosfm.phone")
 
 MIN_CORRELATION = 0.5  # a weaker best fit of gyroscope and image turns: the log and the video do not match
 MAX_OFFSET_SIGMA_S = 0.005  # a looser time offset is warned about
+DISAGREE_SIGMAS = 3.0  # the two timings further apart than this many combined sigmas are warned about
 
 
 @dataclass(frozen=True)
@@ -140,6 +141,9 @@ def import_capture(video: str | Path, sensors: str | Path, out: str | Path, fmt:
             if tried is not None and tried.offset_sigma_s < sync.offset_sigma_s:  # the tighter of the two is kept
                 timing, att = tried, att_lines
                 _write_imu(tmp / "imu.csv", t_frames, att.R_wc)
+            if tried is not None and (msg := timings_disagree(sync.offset_s, sync.offset_sigma_s, tried.offset_s,
+                                                               tried.offset_sigma_s)):
+                warnings.append(msg)
         sigma = timing.offset_sigma_s if timing is not None else sync.offset_sigma_s
         if sigma > MAX_OFFSET_SIGMA_S:
             warnings.append(f"the time offset is loose (+- {1e3 * sigma:.0f} ms): the spin is too smooth to time the "
@@ -162,6 +166,18 @@ def import_capture(video: str | Path, sensors: str | Path, out: str | Path, fmt:
     for wmsg in warnings:
         log.info("%s", wmsg)
     return ImportResult(out, int(n), raw.source, sync, att, focal_px, tuple(warnings), timing)
+
+
+def timings_disagree(turns_s: float, turns_sigma_s: float, lines_s: float, lines_sigma_s: float,
+                     max_sigmas: float = DISAGREE_SIGMAS) -> str | None:
+    """Returns a warning where the images' turns and the lines' rotations put the offset more than ``max_sigmas``
+    combined sigmas apart (one of them is wrong by more than its sigma says), else None."""
+    gap = abs(lines_s - turns_s)
+    sigma = math.hypot(turns_sigma_s, lines_sigma_s)
+    if not math.isfinite(sigma) or gap <= max_sigmas * sigma:
+        return None
+    return (f"the images' turns and the lines' rotations time the video {1e3 * gap:.0f} ms apart ({gap / sigma:.1f} "
+            f"sigma): the offset may be further off than its sigma says")
 
 
 def _write_imu(path: Path, t_frames: np.ndarray, R_wc: np.ndarray) -> None:
