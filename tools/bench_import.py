@@ -65,7 +65,7 @@ def one(root: Path, scene: str, seed: int, frames: int, size: tuple[int, int], t
         err = heading_aligned_errors_deg(R_imu, gt.R_wc)
         shutil.copytree(cap / "ground_truth", imp.path / "ground_truth")
         row[label] = {"import_s": round(secs, 2), "offset_err_ms": 1e3 * (imp.offset_s - truth["offset_s"]),
-                      "offset_sigma_ms": 1e3 * (imp.line_timing or imp.sync).offset_sigma_s,
+                      "offset_sigma_ms": 1e3 * imp.offset_sigma_s,
                       "offset_from": "lines" if imp.line_timing else "turns",
                       "turns_offset_err_ms": 1e3 * (imp.sync.offset_s - truth["offset_s"]),
                       "turns_offset_sigma_ms": 1e3 * imp.sync.offset_sigma_s,

@@ -91,15 +91,14 @@ def place_by_motion_model(pre: Preprocessed, tracks: Tracks, sol: Solution, conf
             out = _adjust_lines(pre, tracks, relations, out, config)
         return out
     compare = has_points and config.motion_lines_points_max_rel > 0
-    if compare and config.motion_model and not sol.registered.all():
-        # the points alone first: where they place every frame and disagree with the lines, the anchored placement
-        # would be thrown away (measured, a streamed bedroom batch: 50 iterations, 11 s; docs/decisions.md#points-first)
-        if free is None:
-            free = _place(pre, tracks, sol, config, points, points_config, anchor_free=True)
-        if free.registered.all():
-            out = _lines_or_points(pre, tracks, sol, None, free, config)
-            if out is not None:
-                return _adjust_lines(pre, tracks, relations, out, config)
+    # the points alone first: where they place every frame and disagree with the lines, the anchored placement
+    # would be thrown away (measured, a streamed bedroom batch: 50 iterations, 11 s; docs/decisions.md#points-first)
+    if free is None:
+        free = place_by_points_alone(pre, tracks, sol, config, points, points_config)
+    if free is not None and free.registered.all():
+        out = _lines_or_points(pre, tracks, sol, None, free, config)
+        if out is not None:
+            return _adjust_lines(pre, tracks, relations, out, config)
     anchored = _place(pre, tracks, sol, config, points, points_config, anchor_free=False)
     if not compare or "motion_model" not in anchored.residuals:
         return anchored

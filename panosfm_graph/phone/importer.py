@@ -61,6 +61,11 @@ class ImportResult:
         """The time offset written (sensor clock minus video clock): the lines' where they re-timed it."""
         return self.line_timing.offset_s if self.line_timing is not None else self.sync.offset_s
 
+    @property
+    def offset_sigma_s(self) -> float:
+        """The written time offset's sigma."""
+        return self.line_timing.offset_sigma_s if self.line_timing is not None else self.sync.offset_sigma_s
+
 
 def _epoch_from_name(video: Path) -> float | None:
     """Returns UNIX seconds from a video named by its start time in epoch milliseconds (Sensor Logger), else None."""
@@ -222,10 +227,9 @@ def format_import(res: ImportResult) -> str:
     else:
         how = (f"from the lines' rotations: {lt.frames} frames, {lt.seconds:.1f} s; the images' turns gave "
                f"{s.offset_s:+.4f} s +- {1e3 * s.offset_sigma_s:.0f} ms")
-    sigma = lt.offset_sigma_s if lt is not None else s.offset_sigma_s
     lines = [
         f"wrote {res.path}: {res.n_frames} frames, sensors {res.sensors}",
-        f"time offset   sensor clock = video clock {res.offset_s:+.4f} s +- {1e3 * sigma:.1f} ms ({how})",
+        f"time offset   sensor clock = video clock {res.offset_s:+.4f} s +- {1e3 * res.offset_sigma_s:.1f} ms ({how})",
         "camera axes   " + ("along the phone's: " if s.axes_snapped else "fitted: ")
         + "; ".join(" ".join(f"{v:+.0f}" if s.axes_snapped else f"{v:+.2f}" for v in row)
                     for row in s.camera_from_device),

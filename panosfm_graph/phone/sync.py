@@ -171,22 +171,22 @@ def estimate_sync(t_frames: np.ndarray, theta_img: np.ndarray, sensors: RawSenso
     P = np.eye(3) - np.outer(axis, axis)
 
     def cost(o: float, keep: float = TRIM) -> tuple[float, float, np.ndarray]:
+        """Returns (the kept intervals' mean squared off-axis residual, the scale, the residuals (M, 3))."""
         gc = gyro_turns(Q, ta + o, tb + o) @ R.T
         s = float(np.sum(img * gc) / max(np.sum(gc * gc), 1e-30))
-        e = np.sum(((img - s * gc) @ P) ** 2, axis=1)
-        cut = np.quantile(e, keep)
-        return float(np.mean(e[e <= cut])), s, e
+        r = (img - s * gc) @ P
+        e = np.sum(r * r, axis=1)
+        return float(np.mean(e[e <= np.quantile(e, keep)])), s, r
 
     lo_f, hi_f = max(o_c - 2 * GRID_STEP_S, lo), min(o_c + 2 * GRID_STEP_S, hi)
     res = minimize_scalar(lambda o: cost(o)[0], bounds=(lo_f, hi_f), method="bounded", options={"xatol": 1e-5})
     o_f = float(res.x)
-    c, s, e = cost(o_f)
+    c, s, r = cost(o_f)
     h = 1e-3
     # the best offset at the end of the log's cover is no minimum: no curvature there
     curv = (cost(o_f + h)[0] - 2 * c + cost(o_f - h)[0]) / (h * h) if lo <= o_f - h and o_f + h <= hi else 0.0
-    gc = gyro_turns(Q, ta + o_f, tb + o_f) @ R.T
-    kept = e <= np.quantile(e, TRIM)
-    n = independent_samples(((img - s * gc) @ P)[kept])
+    e = np.sum(r * r, axis=1)
+    n = independent_samples(r[e <= np.quantile(e, TRIM)])
     sigma = float(np.sqrt(2 * c / (n * curv))) if curv > 0 else float("inf")
     return Sync(offset_s=o_f, offset_sigma_s=sigma, camera_from_device=R, axes_snapped=snapped, scale=s,
                 residual_deg=float(np.degrees(np.sqrt(c))), correlation=float(score[k]), intervals=int(ok.sum()))
