@@ -44,6 +44,9 @@ def test_import_finds_offset_axes_bias_and_attitude(recording, imported):
     cap, rec = recording
     truth = json.loads((rec / "truth.json").read_text())
     assert abs(imported.sync.offset_s - OFFSET) < 0.005
+    # the hand's tremor times it, far inside the 5 ms, with a sigma that says so (not loose: no line timing)
+    assert imported.sync.band == "tremor" and imported.line_timing is None
+    assert abs(imported.sync.offset_s - OFFSET) < 0.001 and imported.sync.offset_sigma_s < 0.001
     assert imported.sync.axes_snapped
     np.testing.assert_array_equal(imported.sync.camera_from_device, LANDSCAPE_CAMERA_FROM_DEVICE)
     np.testing.assert_allclose(imported.attitude.gyro_bias, truth["gyro_bias_rad_s"], atol=3e-4)
@@ -59,6 +62,7 @@ def test_imported_capture_loads_with_unknown_focal(imported):
     assert (cap.camera.width, cap.camera.height) == SIZE
     report = json.loads((imported.path / "import.json").read_text())
     assert abs(report["time_offset_s"] - OFFSET) < 0.005
+    assert report["turns_band"] == "tremor" and report["tremor_share"] > 0.5 and not report["warnings"]
 
 
 def test_import_without_tremor_or_lever_fit_is_worse_but_sound(recording, tmp_path):

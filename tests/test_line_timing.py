@@ -95,6 +95,7 @@ def test_a_smooth_spin_is_timed_by_its_lines(smooth_recording, tmp_path):
     res = import_capture(rec / "video.mp4", rec / "sensors", tmp_path / "lines")
     turns = import_capture(rec / "video.mp4", rec / "sensors", tmp_path / "turns", line_timing=False)
     assert turns.sync.offset_sigma_s > 0.005 and turns.line_timing is None  # the turns leave it loose
+    assert turns.sync.band == "full"  # no tremor to time it by
     lt = res.line_timing
     assert lt is not None and len(lt.offsets_s) == 3
     err = abs(res.offset_s - OFFSET)

@@ -66,7 +66,8 @@ def one(root: Path, scene: str, seed: int, frames: int, size: tuple[int, int], t
         shutil.copytree(cap / "ground_truth", imp.path / "ground_truth")
         row[label] = {"import_s": round(secs, 2), "offset_err_ms": 1e3 * (imp.offset_s - truth["offset_s"]),
                       "offset_sigma_ms": 1e3 * imp.offset_sigma_s,
-                      "offset_from": "lines" if imp.line_timing else "turns",
+                      "offset_from": "lines" if imp.line_timing else f"turns ({imp.sync.band} band)",
+                      "tremor_share": imp.sync.tremor_share,
                       "turns_offset_err_ms": 1e3 * (imp.sync.offset_s - truth["offset_s"]),
                       "turns_offset_sigma_ms": 1e3 * imp.sync.offset_sigma_s,
                       "axes_ok": bool(np.array_equal(imp.sync.camera_from_device, LANDSCAPE_CAMERA_FROM_DEVICE)),
@@ -104,8 +105,8 @@ def main(argv=None) -> int:
             r = rows[-1]
             for label in ("focal_given", "focal_unknown"):
                 g = r[label]
-                print(f"{scene} s{seed} {label:13s} offset {g['offset_err_ms']:+.2f} ms +- {g['offset_sigma_ms']:.1f} "
-                      f"({g['offset_from']}; turns {g['turns_offset_err_ms']:+.2f} +- {g['turns_offset_sigma_ms']:.1f}), axes "
+                print(f"{scene} s{seed} {label:13s} offset {g['offset_err_ms']:+.2f} ms +- {g['offset_sigma_ms']:.2f} "
+                      f"({g['offset_from']}; turns {g['turns_offset_err_ms']:+.2f} +- {g['turns_offset_sigma_ms']:.2f}), axes "
                       f"{'ok' if g['axes_ok'] else 'WRONG'}, bias err {g['bias_err_deg_s']:.4f} deg/s, attitude "
                       f"{g['attitude_median_deg']:.3f}/{g['attitude_max_deg']:.3f} deg, import {g['import_s']} s; run: "
                       f"{g['run']}", flush=True)

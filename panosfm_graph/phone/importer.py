@@ -159,6 +159,7 @@ def import_capture(video: str | Path, sensors: str | Path, out: str | Path, fmt:
             "time_offset_s": timing.offset_s if timing else sync.offset_s, "time_offset_sigma_s": sigma,
             "time_offset_from": "lines' rotations" if timing else "images' turns", "offset_guess_s": guess,
             "turns_time_offset_s": sync.offset_s, "turns_time_offset_sigma_s": sync.offset_sigma_s,
+            "turns_band": sync.band, "tremor_share": sync.tremor_share,
             "line_timing": None if tried is None else {
                 "offset_s": tried.offset_s, "offset_sigma_s": tried.offset_sigma_s, "used": timing is not None,
                 "offsets_s": list(tried.offsets_s), "frames": tried.frames, "seconds": round(tried.seconds, 2)},
@@ -222,8 +223,10 @@ def format_import(res: ImportResult) -> str:
     focal = f"{res.focal_px:.1f} px" if res.focal_px is not None else "not given (panosfm run estimates it)"
     lt = res.line_timing
     if lt is None:
-        how = (f"from the images' turns: correlation {s.correlation:.3f}, off-axis residual {s.residual_deg:.3f} deg "
-               f"per frame, {s.intervals} frame pairs")
+        band = (f"their tremor band, {100 * s.tremor_share:.0f} % matched" if s.band == "tremor"
+                else "too little tremor to time them by it")
+        how = (f"from the images' turns ({band}): correlation {s.correlation:.3f}, off-axis residual "
+               f"{s.residual_deg:.3f} deg per frame, {s.intervals} frame pairs")
     else:
         how = (f"from the lines' rotations: {lt.frames} frames, {lt.seconds:.1f} s; the images' turns gave "
                f"{s.offset_s:+.4f} s +- {1e3 * s.offset_sigma_s:.0f} ms")

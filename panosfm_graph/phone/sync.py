@@ -4,15 +4,25 @@ The gyroscope's turn over each frame interval, ``log(Q(t_k + o)^-1 Q(t_k+1 + o))
 with ``Q`` the integrated gyroscope attitude, must equal the camera's turn seen
 in the images (:mod:`.video_rotation`) once rotated into the camera's axes
 and scaled (parallax and a provisional focal length stretch the image turn).
-:func:`estimate_sync` scores every offset ``o`` on a grid by the best
-rotation between the two sets of turns (Kabsch, scale free: a correlation of
-the vectors), snaps that rotation to the nearest of the 24 axis permutations
-when it lies within :data:`SNAP_DEG` (a phone's camera is mounted along the
-phone's axes; the offset is then searched again with the axes fixed: at a
-wrong offset a free rotation fits 16 degrees off them on a smooth spin),
-and refines ``o`` below a millisecond on the turns' components
+:func:`estimate_sync` scores every offset ``o`` on a grid by the correlation
+of the two sets of turn vectors (scale free), the gyroscope's turned by each
+of the 24 axis permutations (a phone's camera is mounted along the phone's
+axes), and keeps the best permutation and offset
+where the free best rotation (Kabsch) at that offset lies within
+:data:`SNAP_DEG` of it, else the free rotation's best offset (a free
+rotation absorbs part of a timing error: 16 degrees off the axes at a wrong
+offset on a smooth spin, 332 ms off on a fast one in a bare room), and
+refines ``o`` below a millisecond on the turns' components
 off the spin axis (the wobble in pitch and roll carries the timing; the turn
 about the spin axis is nearly constant and biased by parallax).
+
+A hand trembles (2-12 Hz); parallax, the stand point's bob and the slow
+wobble do not. :func:`tremor_band` times the video once more on the turns
+less their moving mean over :data:`TREMOR_HIGHPASS_S`: where the
+gyroscope's turns explain most of the images' there
+(:data:`MIN_TREMOR_SHARE`), that offset is kept, with a sigma from its
+residuals that the smooth errors no longer inflate
+(docs/decisions.md#tremor-band).
 """
 from __future__ import annotations
 
@@ -20,6 +30,7 @@ import itertools
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import uniform_filter1d
 from scipy.optimize import minimize_scalar
 from scipy.spatial.transform import Rotation, Slerp
 
@@ -29,6 +40,10 @@ from .logs import RawSensors
 SNAP_DEG = 30.0  # the 24 axis permutations lie 90 deg apart: within 30 deg of one is unambiguous
 GRID_STEP_S = 0.005
 TRIM = 0.9  # the fine fit keeps this share of the intervals with the smallest residuals
+TREMOR_HIGHPASS_S = 0.3  # the tremor band: each turn less its mean over this long (passes ~3 Hz and up)
+TREMOR_SEARCH_S = 0.1  # the tremor band's offset is searched this far around the whole band's
+TREMOR_STEP_S = 0.002
+MIN_TREMOR_SHARE = 0.8  # the gyroscope's turns explain this share of the images' tremor band: it times the video
 
 
 @dataclass(frozen=True)
@@ -37,13 +52,15 @@ class Sync:
     ``omega_camera = camera_from_device @ omega_device``."""
 
     offset_s: float
-    offset_sigma_s: float  # from the fit's curvature and residual, over the residuals' independent intervals
+    offset_sigma_s: float  # whole band: curvature and residual over independent intervals; tremor band: score_sigma
     camera_from_device: np.ndarray  # (3, 3)
     axes_snapped: bool  # camera_from_device is an axis permutation (else the fitted rotation)
     scale: float  # image turn / gyroscope turn (parallax, focal length error)
     residual_deg: float  # RMS of the off-axis turn residual per interval after the fit
     correlation: float  # the grid score at the chosen offset (1 = the turns agree up to a rotation and scale)
     intervals: int
+    band: str = "full"  # which turns gave the offset: "tremor" (the tremor band) or "full" (every frequency)
+    tremor_share: float = 0.0  # the share of the images' tremor-band turns the gyroscope's explain (0..1)
 
 
 def gyro_orientation(t: np.ndarray, omega: np.ndarray) -> Slerp:
@@ -118,19 +135,88 @@ def independent_samples(e: np.ndarray) -> float:
     return len(e) / tau
 
 
-def _grid_scores(Q: Slerp, ta: np.ndarray, tb: np.ndarray, img: np.ndarray, grid: np.ndarray,
-                 camera_from_device: np.ndarray | None) -> np.ndarray:
-    """Returns each offset's score: the squared correlation of the image turns ``img`` (M, 3) with the gyroscope's
-    over the same intervals, turned by the best rotation (Kabsch) or by ``camera_from_device``, signed."""
-    score = np.empty(len(grid))
+def _grid_correlations(Q: Slerp, ta: np.ndarray, tb: np.ndarray, img: np.ndarray, grid: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Returns, for each offset of ``grid``, the correlation ``H = sum img g^T`` (n, 3, 3) of the image turns
+    ``img`` (M, 3) with the gyroscope's over the same intervals and ``sum |g|^2`` (n,)."""
+    H, gg = np.empty((len(grid), 3, 3)), np.empty(len(grid))
     for c0 in range(0, len(grid), 256):  # bounded memory
-        o = grid[c0:c0 + 256, None]
-        g = gyro_turns(Q, ta[None] + o, tb[None] + o)  # (n, M, 3)
-        H = np.einsum("mi,nmj->nij", img, g)
-        R = kabsch(H) if camera_from_device is None else np.broadcast_to(camera_from_device, H.shape)
-        tr = np.einsum("nij,nij->n", R, H)
-        score[c0:c0 + 256] = np.sign(tr) * tr ** 2 / (np.sum(img ** 2) * np.sum(g ** 2, axis=(1, 2)))
-    return score
+        g = gyro_turns(Q, ta[None] + grid[c0:c0 + 256, None], tb[None] + grid[c0:c0 + 256, None])  # (n, M, 3)
+        H[c0:c0 + 256] = np.einsum("mi,nmj->nij", img, g)
+        gg[c0:c0 + 256] = np.sum(g ** 2, axis=(1, 2))
+    return H, gg
+
+
+def _scores(H: np.ndarray, gg: np.ndarray, img: np.ndarray, R: np.ndarray | None) -> np.ndarray:
+    """Returns each offset's score from :func:`_grid_correlations`: the squared correlation of the image turns with
+    the gyroscope's turned by the best rotation (Kabsch; ``R`` None) or by ``R``, signed."""
+    R = kabsch(H) if R is None else np.broadcast_to(R, H.shape)
+    tr = np.einsum("nij,nij->n", R, H)
+    return np.sign(tr) * tr ** 2 / (np.sum(img ** 2) * gg)
+
+
+def high_pass(x: np.ndarray, idx: np.ndarray, n: int) -> np.ndarray:
+    """Returns ``x`` (M, k), samples at the sorted integer positions ``idx``, less its mean over the ``n``
+    positions around each (missing positions left out of the mean)."""
+    full = np.zeros((int(idx[-1]) + 1, x.shape[1]))
+    have = np.zeros(len(full))
+    full[idx], have[idx] = x, 1.0
+    count = uniform_filter1d(have, n, mode="constant")
+    return x - (uniform_filter1d(full, n, axis=0, mode="constant") / np.maximum(count, 1e-12)[:, None])[idx]
+
+
+def score_sigma(r: np.ndarray, J: np.ndarray) -> float:
+    """Returns the sigma of an offset fitted by least squares to residuals ``r`` (N, k) in time order, with
+    ``J = dr/d offset``: ``sum_l sum_n J_n^T C(l) J_n+l / (sum |J|^2)^2``, ``C(l)`` the residuals' autocovariance
+    up to their first lag without correlation. Residuals that are smooth where ``J`` is not (parallax against
+    tremor) do not inflate it, as they do :func:`independent_samples`."""
+    r = r - r.mean(axis=0)
+    N, jj = len(r), float(np.sum(J * J))
+    if N < 2 or jj <= 0:
+        return float("inf")
+    total = float(np.einsum("ni,ij,nj->", J, r.T @ r / N, J))
+    for lag in range(1, N // 2):
+        C = r[:-lag].T @ r[lag:] / N
+        if np.trace(C) <= 0:
+            break
+        total += 2.0 * float(np.einsum("ni,ij,nj->", J[:-lag], C, J[lag:]))
+    return float(np.sqrt(max(total, 0.0)) / jj)
+
+
+def tremor_band(Q: Slerp, ta: np.ndarray, tb: np.ndarray, img: np.ndarray, idx: np.ndarray,
+                camera_from_device: np.ndarray, around: float, lo: float, hi: float) -> tuple[float, float, float]:
+    """Returns (offset, sigma, share) timing the image turns ``img`` (M, 3) of the intervals ``ta..tb`` (positions
+    ``idx`` among the video's intervals) by their tremor band (:func:`high_pass` over :data:`TREMOR_HIGHPASS_S`),
+    within :data:`TREMOR_SEARCH_S` of ``around`` and ``[lo, hi]``; ``share``: how much of the images'
+    tremor-band turns the gyroscope's explain at that offset (1 - residual / total, the kept intervals)."""
+    rate = 1.0 / max(float(np.median(tb - ta)), 1e-6)
+    n = max(3, int(round(TREMOR_HIGHPASS_S * rate)) | 1)
+    band = high_pass(img, idx, n)
+    R = np.asarray(camera_from_device, dtype=np.float64)
+
+    def resid(o: float) -> np.ndarray:
+        g = high_pass(gyro_turns(Q, ta + o, tb + o) @ R.T, idx, n)
+        return band - float(np.sum(band * g) / max(np.sum(g * g), 1e-30)) * g
+
+    def cost(o: float) -> float:
+        e = np.sum(resid(o) ** 2, axis=1)
+        return float(np.mean(e[e <= np.quantile(e, TRIM)]))
+
+    grid = np.arange(max(lo, around - TREMOR_SEARCH_S), min(hi, around + TREMOR_SEARCH_S) + 1e-9, TREMOR_STEP_S)
+    if len(grid) < 3:
+        return around, float("inf"), 0.0
+    k = int(np.clip(np.argmin([cost(o) for o in grid]), 1, len(grid) - 2))
+    o = float(minimize_scalar(cost, bounds=(grid[k - 1], grid[k + 1]), method="bounded",
+                              options={"xatol": 1e-6}).x)
+    r = resid(o)
+    e = np.sum(r * r, axis=1)
+    keep = e <= np.quantile(e, TRIM)
+    share = 1.0 - float(np.sum(e[keep]) / max(np.sum(band[keep] ** 2), 1e-30))
+    h = 1e-3
+    if o - h < lo or o + h > hi:
+        return o, float("inf"), share
+    J = (resid(o + h) - resid(o - h)) / (2 * h)
+    return o, score_sigma(r[keep], J[keep]), share
 
 
 def estimate_sync(t_frames: np.ndarray, theta_img: np.ndarray, sensors: RawSensors, guess_s: float = 0.0,
@@ -152,20 +238,25 @@ def estimate_sync(t_frames: np.ndarray, theta_img: np.ndarray, sensors: RawSenso
         raise InputError(f"the gyroscope log ({sensors.t_gyro[0]:.2f}..{sensors.t_gyro[-1]:.2f} s) does not cover the "
                          f"video ({t_frames[-1] - t_frames[0]:.2f} s) at any offset within {guess_s:+.2f} +- "
                          f"{max_offset_s:g} s (give --offset-guess or a longer log)")
-    score = _grid_scores(Q, ta, tb, img, grid, camera_from_device)
-    k = int(np.argmax(score))
-    o_c = float(grid[k])
+    H, gg = _grid_correlations(Q, ta, tb, img, grid)
     if camera_from_device is None:
-        R = kabsch(np.einsum("mi,mj->ij", img, gyro_turns(Q, ta + o_c, tb + o_c)))
-        angles = Rotation.from_matrix(np.einsum("kji,jl->kil", AXIS_ROTATIONS, R)).magnitude()
-        snapped = bool(angles.min() < np.radians(SNAP_DEG))
-        if snapped:  # the offset again with the axes fixed: a free rotation absorbs part of a timing error
-            R = AXIS_ROTATIONS[int(np.argmin(angles))]
-            score = _grid_scores(Q, ta, tb, img, grid, R)
+        # every axis permutation's best offset: a free rotation absorbs part of a timing error (16 deg off the
+        # axes at a wrong offset on a smooth spin), so the phone's axes are tried first, kept where the free fit
+        # at their best offset lies within SNAP_DEG of them
+        perm = np.stack([_scores(H, gg, img, P) for P in AXIS_ROTATIONS])  # (24, n)
+        p, k = np.unravel_index(int(np.argmax(perm)), perm.shape)
+        snapped = bool(Rotation.from_matrix(AXIS_ROTATIONS[p].T @ kabsch(H[k])).magnitude() < np.radians(SNAP_DEG))
+        if snapped:
+            R, score = AXIS_ROTATIONS[p], perm[p]
+        else:
+            score = _scores(H, gg, img, None)
             k = int(np.argmax(score))
-            o_c = float(grid[k])
+            R = kabsch(H[k])
     else:
         R, snapped = np.asarray(camera_from_device, dtype=np.float64), True
+        score = _scores(H, gg, img, R)
+        k = int(np.argmax(score))
+    o_c = float(grid[k])
     axis = np.mean(img, axis=0)
     axis /= max(np.linalg.norm(axis), 1e-12)
     P = np.eye(3) - np.outer(axis, axis)
@@ -188,5 +279,10 @@ def estimate_sync(t_frames: np.ndarray, theta_img: np.ndarray, sensors: RawSenso
     e = np.sum(r * r, axis=1)
     n = independent_samples(r[e <= np.quantile(e, TRIM)])
     sigma = float(np.sqrt(2 * c / (n * curv))) if curv > 0 else float("inf")
+    o_t, sigma_t, share = tremor_band(Q, ta, tb, img, np.flatnonzero(ok), R, o_f, lo, hi)
+    band = "tremor" if share >= MIN_TREMOR_SHARE and np.isfinite(sigma_t) else "full"
+    if band == "tremor":
+        o_f, sigma = o_t, sigma_t
     return Sync(offset_s=o_f, offset_sigma_s=sigma, camera_from_device=R, axes_snapped=snapped, scale=s,
-                residual_deg=float(np.degrees(np.sqrt(c))), correlation=float(score[k]), intervals=int(ok.sum()))
+                residual_deg=float(np.degrees(np.sqrt(c))), correlation=float(score[k]), intervals=int(ok.sum()),
+                band=band, tremor_share=share)
