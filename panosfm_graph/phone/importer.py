@@ -217,22 +217,28 @@ def _orient_up(raw: RawSensors, t: np.ndarray, camera_from_device: np.ndarray) -
     return RawSensors(raw.t_gyro, raw.gyro, raw.t_up, -raw.up, raw.source + " (up flipped)", raw.epoch_s), True
 
 
+def _ms(seconds: float) -> str:
+    """Returns ``seconds`` in milliseconds with two significant digits (0.03, 1.3, 28)."""
+    v = 1e3 * seconds
+    return f"{v:.0f}" if not np.isfinite(v) or v >= 10 else f"{v:.1f}" if v >= 1 else f"{v:.2f}"
+
+
 def format_import(res: ImportResult) -> str:
     """Returns the CLI report of an import: a few lines."""
     s, a = res.sync, res.attitude
     focal = f"{res.focal_px:.1f} px" if res.focal_px is not None else "not given (panosfm run estimates it)"
     lt = res.line_timing
     if lt is None:
-        band = (f"their tremor band, {100 * s.tremor_share:.0f} % matched" if s.band == "tremor"
-                else "too little tremor to time them by it")
-        how = (f"from the images' turns ({band}): correlation {s.correlation:.3f}, off-axis residual "
+        band = (f"their tremor band, {100 * s.tremor_share:.0f} % matched by the gyroscope's" if s.band == "tremor"
+                else "every frequency: too little tremor to time them by it alone")
+        how = (f"from the images' turns, {band}; correlation {s.correlation:.3f}, off-axis residual "
                f"{s.residual_deg:.3f} deg per frame, {s.intervals} frame pairs")
     else:
         how = (f"from the lines' rotations: {lt.frames} frames, {lt.seconds:.1f} s; the images' turns gave "
-               f"{s.offset_s:+.4f} s +- {1e3 * s.offset_sigma_s:.0f} ms")
+               f"{s.offset_s:+.4f} s +- {_ms(s.offset_sigma_s)} ms")
     lines = [
         f"wrote {res.path}: {res.n_frames} frames, sensors {res.sensors}",
-        f"time offset   sensor clock = video clock {res.offset_s:+.4f} s +- {1e3 * res.offset_sigma_s:.1f} ms ({how})",
+        f"time offset   sensor clock = video clock {res.offset_s:+.4f} s +- {_ms(res.offset_sigma_s)} ms ({how})",
         "camera axes   " + ("along the phone's: " if s.axes_snapped else "fitted: ")
         + "; ".join(" ".join(f"{v:+.0f}" if s.axes_snapped else f"{v:+.2f}" for v in row)
                     for row in s.camera_from_device),
