@@ -7,14 +7,14 @@ and scaled (parallax and a provisional focal length stretch the image turn).
 :func:`estimate_sync` scores every offset ``o`` on a grid by the correlation
 of the two sets of turn vectors (scale free), the gyroscope's turned by each
 of the 24 axis permutations (a phone's camera is mounted along the phone's
-axes), and keeps the best permutation and offset
-where the free best rotation (Kabsch) at that offset lies within
-:data:`SNAP_DEG` of it, else the free rotation's best offset (a free
-rotation absorbs part of a timing error: 16 degrees off the axes at a wrong
-offset on a smooth spin, 332 ms off on a fast one in a bare room), and
-refines ``o`` below a millisecond on the turns' components
-off the spin axis (the wobble in pitch and roll carries the timing; the turn
-about the spin axis is nearly constant and biased by parallax).
+axes), and keeps the best permutation and offset where the best free
+rotation (Kabsch) at that offset lies within :data:`SNAP_DEG` of it, else
+the free rotation's best offset (a free rotation absorbs part of a timing
+error: 16 degrees off the axes at a wrong offset on a smooth spin, 332 ms
+off on a fast one in a bare room), and refines ``o`` below a millisecond on
+the turns' components off the spin axis (the wobble in pitch and roll
+carries the timing; the turn about the spin axis is nearly constant and
+biased by parallax).
 
 A hand trembles (2-12 Hz); parallax, the stand point's bob and the slow
 wobble do not. :func:`tremor_band` times the video once more on the turns
