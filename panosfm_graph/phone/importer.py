@@ -59,12 +59,12 @@ class ImportResult:
     @property
     def offset_s(self) -> float:
         """The time offset written (sensor clock minus video clock): the lines' where they re-timed it."""
-        return self.line_timing.offset_s if self.line_timing is not None else self.sync.offset_s
+        return (self.line_timing or self.sync).offset_s
 
     @property
     def offset_sigma_s(self) -> float:
         """The written time offset's sigma."""
-        return self.line_timing.offset_sigma_s if self.line_timing is not None else self.sync.offset_sigma_s
+        return (self.line_timing or self.sync).offset_sigma_s
 
 
 def _epoch_from_name(video: Path) -> float | None:
@@ -149,14 +149,14 @@ def import_capture(video: str | Path, sensors: str | Path, out: str | Path, fmt:
             if tried is not None and (msg := timings_disagree(sync.offset_s, sync.offset_sigma_s, tried.offset_s,
                                                                tried.offset_sigma_s)):
                 warnings.append(msg)
-        sigma = timing.offset_sigma_s if timing is not None else sync.offset_sigma_s
-        if sigma > MAX_OFFSET_SIGMA_S:
-            warnings.append(f"the time offset is loose (+- {1e3 * sigma:.0f} ms): the spin is too smooth to time the "
-                            f"video against the gyroscope")
+        written = timing or sync  # the offset written: the lines' where they re-timed it
+        if written.offset_sigma_s > MAX_OFFSET_SIGMA_S:
+            warnings.append(f"the time offset is loose (+- {1e3 * written.offset_sigma_s:.0f} ms): the spin is too "
+                            f"smooth to time the video against the gyroscope")
         report = {
             "video": str(video), "sensors": str(sensors), "sensor_log": raw.source, "frames": int(n),
             "frame_times_from": t_from, "gyro_rate_hz": round(raw.gyro_rate_hz, 2),
-            "time_offset_s": timing.offset_s if timing else sync.offset_s, "time_offset_sigma_s": sigma,
+            "time_offset_s": written.offset_s, "time_offset_sigma_s": written.offset_sigma_s,
             "time_offset_from": "lines' rotations" if timing else "images' turns", "offset_guess_s": guess,
             "turns_time_offset_s": sync.offset_s, "turns_time_offset_sigma_s": sync.offset_sigma_s,
             "turns_band": sync.band, "tremor_share": sync.tremor_share,

@@ -155,6 +155,14 @@ def _scores(H: np.ndarray, gg: np.ndarray, img: np.ndarray, R: np.ndarray | None
     return np.sign(tr) * tr ** 2 / (np.sum(img ** 2) * gg)
 
 
+def _trimmed(r: np.ndarray) -> tuple[float, np.ndarray]:
+    """Returns (the mean squared norm of the rows of ``r`` (M, k) kept, the kept rows' mask): the :data:`TRIM` share
+    with the smallest norms."""
+    e = np.sum(r * r, axis=1)
+    keep = e <= np.quantile(e, TRIM)
+    return float(np.mean(e[keep])), keep
+
+
 def high_pass(x: np.ndarray, idx: np.ndarray, n: int) -> np.ndarray:
     """Returns ``x`` (M, k), samples at the sorted integer positions ``idx``, less its mean over the ``n``
     positions around each (missing positions left out of the mean)."""
@@ -199,8 +207,7 @@ def tremor_band(Q: Slerp, ta: np.ndarray, tb: np.ndarray, img: np.ndarray, idx: 
         return band - float(np.sum(band * g) / max(np.sum(g * g), 1e-30)) * g
 
     def cost(o: float) -> float:
-        e = np.sum(resid(o) ** 2, axis=1)
-        return float(np.mean(e[e <= np.quantile(e, TRIM)]))
+        return _trimmed(resid(o))[0]
 
     grid = np.arange(max(lo, around - TREMOR_SEARCH_S), min(hi, around + TREMOR_SEARCH_S) + 1e-9, TREMOR_STEP_S)
     if len(grid) < 3:
@@ -209,9 +216,8 @@ def tremor_band(Q: Slerp, ta: np.ndarray, tb: np.ndarray, img: np.ndarray, idx: 
     o = float(minimize_scalar(cost, bounds=(grid[k - 1], grid[k + 1]), method="bounded",
                               options={"xatol": 1e-6}).x)
     r = resid(o)
-    e = np.sum(r * r, axis=1)
-    keep = e <= np.quantile(e, TRIM)
-    share = 1.0 - float(np.sum(e[keep]) / max(np.sum(band[keep] ** 2), 1e-30))
+    keep = _trimmed(r)[1]
+    share = 1.0 - float(np.sum(r[keep] ** 2) / max(np.sum(band[keep] ** 2), 1e-30))
     h = 1e-3
     if o - h < lo or o + h > hi:
         return o, float("inf"), share
@@ -261,23 +267,23 @@ def estimate_sync(t_frames: np.ndarray, theta_img: np.ndarray, sensors: RawSenso
     axis /= max(np.linalg.norm(axis), 1e-12)
     P = np.eye(3) - np.outer(axis, axis)
 
-    def cost(o: float, keep: float = TRIM) -> tuple[float, float, np.ndarray]:
-        """Returns (the kept intervals' mean squared off-axis residual, the scale, the residuals (M, 3))."""
+    def cost(o: float) -> tuple[float, float, np.ndarray, np.ndarray]:
+        """Returns (the kept intervals' mean squared off-axis residual, the scale, the residuals (M, 3), the kept
+        intervals' mask)."""
         gc = gyro_turns(Q, ta + o, tb + o) @ R.T
         s = float(np.sum(img * gc) / max(np.sum(gc * gc), 1e-30))
         r = (img - s * gc) @ P
-        e = np.sum(r * r, axis=1)
-        return float(np.mean(e[e <= np.quantile(e, keep)])), s, r
+        c, keep = _trimmed(r)
+        return c, s, r, keep
 
     lo_f, hi_f = max(o_c - 2 * GRID_STEP_S, lo), min(o_c + 2 * GRID_STEP_S, hi)
     res = minimize_scalar(lambda o: cost(o)[0], bounds=(lo_f, hi_f), method="bounded", options={"xatol": 1e-5})
     o_f = float(res.x)
-    c, s, r = cost(o_f)
+    c, s, r, keep = cost(o_f)
     h = 1e-3
     # the best offset at the end of the log's cover is no minimum: no curvature there
     curv = (cost(o_f + h)[0] - 2 * c + cost(o_f - h)[0]) / (h * h) if lo <= o_f - h and o_f + h <= hi else 0.0
-    e = np.sum(r * r, axis=1)
-    n = independent_samples(r[e <= np.quantile(e, TRIM)])
+    n = independent_samples(r[keep])
     sigma = float(np.sqrt(2 * c / (n * curv))) if curv > 0 else float("inf")
     o_t, sigma_t, share = tremor_band(Q, ta, tb, img, np.flatnonzero(ok), R, o_f, lo, hi)
     band = "tremor" if share >= MIN_TREMOR_SHARE and np.isfinite(sigma_t) else "full"
