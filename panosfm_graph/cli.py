@@ -62,8 +62,9 @@ def _add_config_flags(p: argparse.ArgumentParser) -> None:
                         "stays put: frames between two fixed ones are placed on the circle) or auto (default: "
                         "hand-held, then steady where the camera centres lie on one circle)")
     g.add_argument("--strict", action="store_true", default=None,
-                   help="output only the frames the lines fix, at the lines' poses (no frame placed by the spin's "
-                        "motion model, no point tracks in the bundle adjustment)")
+                   help="output only the frames an independent solution confirms (the lines' own or the point "
+                        "tracks' own places it within 5 %% of the spin's diameter) and no doubtful frame; the lines' "
+                        "frames alone: --set graph.motion_model=False")
     g.add_argument("--incremental", type=int, default=None, metavar="N",
                    help="stream the capture N frames at a time: an estimate after each batch, the last solved in "
                         "full (--set graph.incremental_final_solve=False: as the others)")
@@ -151,8 +152,7 @@ def config_from_args(args: argparse.Namespace, base: Config | None = None) -> Co
     put("linear", "camera_height_m", getattr(args, "camera_height", None))
     put("graph", "incremental_batch", getattr(args, "incremental", None))
     put("focal", "estimate", getattr(args, "estimate_focal", None))
-    put("graph", "motion_model", False if getattr(args, "strict", None) else None)
-    put("graph", "points_joint_max_line_rms_ratio", 0.0 if getattr(args, "strict", None) else None)
+    put("verify", "strict", True if getattr(args, "strict", None) else None)
     for item in getattr(args, "set", []) or []:
         if "=" not in item or "." not in item.split("=", 1)[0]:
             raise InputError(f"--set {item!r}: expected SECTION.FIELD=VALUE")
@@ -198,8 +198,26 @@ def _or(value, default):
 def _cmd_synth(args: argparse.Namespace) -> int:
     scene_only = {"--scene": args.scene, "--texture": args.texture, "--blur": args.blur, "--exposure": args.exposure,
                   "--noise": args.noise, "--sway": args.sway, "--arm": args.arm, "--no-gt-maps": args.no_gt_maps or None,
-                  "--tremor": args.tremor, "--phone": args.phone}
+                  "--tremor": args.tremor, "--phone": args.phone, "--photo-textures": args.photo_textures}
     pano_only = {"--layout": args.layout, "--wobble": args.wobble, "--imu-noise": args.imu_noise}
+    parallax = args.panorama is not None and (args.sway is not None or (args.arm or 0.0) > 0)
+    if parallax:  # a hand-held spin inside the panorama's room
+        given = [k for k, v in scene_only.items() if v is not None and k not in ("--sway", "--arm", "--no-gt-maps")]
+        given += ["--wobble"] if args.wobble is not None else []
+        if given:
+            raise InputError(f"{', '.join(given)}: not for a spin inside a panorama's room (--panorama with --sway "
+                             f"or --arm)")
+        if args.layout is None:
+            raise InputError("--panorama with --sway or --arm spins inside the panorama's room: give its --layout")
+        from .synth import room_spin
+
+        extra = {k: v for k, v in dict(hfov_deg=args.hfov, imu_noise_deg=args.imu_noise, turn_deg=args.turn,
+                                       arm_m=args.arm).items() if v is not None}
+        path = room_spin(args.panorama, args.layout, args.out, n_frames=_or(args.frames, 300),
+                         size=_or(args.size, (640, 360)), seed=args.seed, sway_m=_or(args.sway, 0.0),
+                         imu_drift_deg=args.imu_drift, gt_maps=not args.no_gt_maps, **extra)
+        print(f"wrote {path}")
+        return 0
     if args.panorama is not None:
         given = [k for k, v in scene_only.items() if v is not None]
         if given:
@@ -219,9 +237,10 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         raise InputError("exists and is not empty", args.phone)
     from .synth import synthesize
 
-    path = synthesize(args.out, scene=_or(args.scene, "living"), n_frames=_or(args.frames, 300),
+    path = synthesize(args.out, scene=_or(args.scene, "living"), n_frames=args.frames,
                       size=_or(args.size, (960, 540)), seed=args.seed, imu_drift_deg=args.imu_drift,
-                      turn_deg=_or(args.turn, 380.0), texture=_or(args.texture, 1.0), sway_m=_or(args.sway, 0.0),
+                      turn_deg=args.turn, texture=_or(args.texture, 1.0), sway_m=args.sway,
+                      photo_dir=args.photo_textures,
                       blur=_or(args.blur, 0.0), noise=_or(args.noise, 0.0), gt_maps=not args.no_gt_maps,
                       exposure_s=_or(args.exposure, 0.0), arm_m=args.arm, hfov_deg=args.hfov,
                       tremor_deg=_or(args.tremor, 0.0))
@@ -350,11 +369,15 @@ def build_parser() -> argparse.ArgumentParser:
                                    "(--scene), or cut from a gravity-aligned equirectangular panorama (--panorama: "
                                    "rotation only, every frame shares the panorama's centre).")
     s.add_argument("out")
-    s.add_argument("--scene", default=None, help="living (default), bedroom, office, random, ...")
+    s.add_argument("--scene", default=None,
+                   help="living (default), bedroom, office, bare, plain, hall, narrow, or random: a procedural room "
+                        "and spin drawn from --seed (its frames, turn, sway, arm and field of view unless given)")
     s.add_argument("--panorama", default=None, metavar="PANO",
                    help="cut the spin from this equirectangular image (2:1, horizon on the middle row) instead")
-    s.add_argument("--layout", default=None, metavar="JSON",
-                   help="with --panorama: the room's PanoAnnotator layout, for ground-truth room lines")
+    s.add_argument("--layout", default=None, metavar="FILE",
+                   help="with --panorama: the room's layout (PanoAnnotator JSON or HorizonNet corners .txt), for "
+                        "ground-truth room lines; with --sway or --arm the spin is hand-held inside that room, its "
+                        "surfaces painted with the panorama (parallax)")
     s.add_argument("--frames", type=int, default=None, help="number of frames (default 300; 240 with --panorama)")
     s.add_argument("--size", type=_parse_size, default=None,
                    help="WxH, e.g. 960x540 (default 960x540; 640x360 with --panorama)")
@@ -379,6 +402,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="radius of the circle the camera centre describes (default: 0.30-0.40 m by seed; "
                         "0 = a tripod spin, zero baseline)")
     s.add_argument("--no-gt-maps", action="store_true", help="skip per-frame ground-truth normals and depth")
+    s.add_argument("--photo-textures", default=None, metavar="DIR",
+                   help="with --scene random: paint some surfaces with crops of the equirectangular photos in DIR")
     s.add_argument("--tremor", type=float, default=None, metavar="DEG",
                    help="RMS angle of a hand's rotational tremor, 2-7 Hz (default 0)")
     s.add_argument("--phone", default=None, metavar="DIR",

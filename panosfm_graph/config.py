@@ -280,6 +280,9 @@ class LinearConfig:
     # never); see docs/decisions.md#zero-baseline
     zero_baseline_px: float = 3.0
     zero_baseline_min_turn_deg: float = 20.0  # ... only tracks seen over this much turn measure it
+    # ... and not where the 90th percentile of the drift reaches this (the near lines of a big room show the arm); see
+    # docs/decisions.md#zero-baseline-by-the-near-lines
+    zero_baseline_p90_px: float = 8.0
     # register a frame only if its lines' interpretation-plane normals span 3D this well (smallest eigenvalue of their
     # scatter; the BA's determinacy test still applies); see docs/decisions.md#min-view-eigenvalue
     min_view_eig: float = 0.005
@@ -452,6 +455,36 @@ class GraphConfig:
 
 
 @dataclass(frozen=True)
+class VerifyConfig:
+    """Every result checked against independent evidence, with an honest std per frame (our addition, issue #63;
+    graph.reliability). Stds are shares of the spin's diameter; the scales are calibrated on the procedural rooms
+    (tools/calibrate_sigma.py, docs/decisions.md#honest-sigma)."""
+
+    enabled: bool = True
+    # a frame's std: the geometric mean of its evidences, each scaled to a median predictor of its error (the
+    # motion model's marginal times model_ratio; the distance to the nearest independent solution, its median
+    # over evidence_window of the frames about it or its own where larger, times gap_ratio), times sigma_scale
+    model_ratio: float = 1.54
+    gap_ratio: float = 0.93
+    other_ratio: float = 0.7  # ... the distance to the solution independent of the frame's own source (lines/points)
+    evidence_window: float = 0.05
+    sigma_scale: float = 1.19  # 3 stds cover 95 % of the frames' errors on the procedural rooms
+    floor_sigma_rel: float = 0.002  # every frame's std is at least this
+    fallback_sigma_rel: float = 0.01  # a frame without any evidence
+    points_check: bool = True  # place the spin by the point tracks alone where the pipeline did not, to compare
+    flag_sigma_rel: float = 0.05 / 3  # a frame whose std exceeds this is doubtful (3 stds within an accurate 5 %)
+    max_sigma_rel: float = 0.10  # ... beyond this it is left out
+    max_rotation_gap_deg: float = 1.0  # a rotation this far from every other estimate of it is doubtful
+    max_lines_points_rel: float = 0.03  # the lines' and the points' solutions this far apart: the run is doubtful
+    # a frame whose rotation relative to its neighbours (within imu_window_frames) departs from the IMU's by more than
+    # this is doubtful: the IMU drifts over the spin, not over a few frames
+    max_imu_gap_deg: float = 1.0
+    imu_window_frames: int = 5
+    # --strict: keep only frames that an independent solution confirms (within 3 of their stds)
+    strict: bool = False
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole pipeline's settings; ``summary.json`` records the exact config used."""
 
@@ -466,6 +499,7 @@ class Config:
     relations: RelationsConfig = field(default_factory=RelationsConfig)
     linear: LinearConfig = field(default_factory=LinearConfig)
     graph: GraphConfig = field(default_factory=GraphConfig)
+    verify: VerifyConfig = field(default_factory=VerifyConfig)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

@@ -102,10 +102,17 @@ def accurate_frames(c_est: np.ndarray, c_gt: np.ndarray, R_est: np.ndarray, R_gt
     """
     if len(c_est) == 0 or diam <= 0:
         return 0
+    err, rot = frame_errors(c_est, c_gt, R_est, R_gt, diam)
+    return int(np.sum((err <= ACCURATE_CENTER_REL) & (rot <= ACCURATE_ROTATION_DEG)))
+
+
+def frame_errors(c_est: np.ndarray, c_gt: np.ndarray, R_est: np.ndarray, R_gt: np.ndarray, diam: float
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((N,) each centre's error over ``diam``, (N,) each rotation's error in degrees) after
+    :func:`orientation_alignment` (the alignment :func:`accurate_frames` judges by)."""
     al = orientation_alignment(c_est, c_gt, R_est, R_gt)
     err = np.linalg.norm(al["scale"] * c_est @ al["R"].T + al["t"] - c_gt, axis=1) / diam
-    rot = rotation_angle_deg(np.einsum("ij,njk->nik", al["R"], R_est), R_gt)
-    return int(np.sum((err <= ACCURATE_CENTER_REL) & (rot <= ACCURATE_ROTATION_DEG)))
+    return err, rotation_angle_deg(np.einsum("ij,njk->nik", al["R"], R_est), R_gt)
 
 
 # --------------------------------------------------------------------------------------
@@ -430,7 +437,10 @@ def evaluate_reconstruction(capture: Capture | str | Path, recon_dir: str | Path
     out["rotation_error_deg"] = _stats(rot)
     if diam > 0:
         out["accurate_sim3"] = int(np.sum((err / diam <= ACCURATE_CENTER_REL) & (rot <= ACCURATE_ROTATION_DEG)))
-        out["accurate"] = accurate_frames(c_est[use], gt.centers[use], R_est[use], gt.R_wc[use], diam)
+        e_rel, e_rot = frame_errors(c_est[use], gt.centers[use], R_est[use], gt.R_wc[use], diam)
+        good = (e_rel <= ACCURATE_CENTER_REL) & (e_rot <= ACCURATE_ROTATION_DEG)
+        out["accurate"] = int(good.sum())
+        out["uncertainty"] = uncertainty_metrics(recon_dir, use, e_rel, good, F)
     B = rotation_alignment(R_est[use], gt.R_wc[use])
     out["rotation_error_rotalign_deg"] = _stats(rotation_angle_deg(np.einsum("ij,njk->nik", B, R_est[use]), gt.R_wc[use]))
 
@@ -442,6 +452,44 @@ def evaluate_reconstruction(capture: Capture | str | Path, recon_dir: str | Path
     out["lines"] = _line_metrics(recon_dir, gt, (s, A, t), edge_dist_m, edge_angle_deg, edge_cover_frac,
                                  min_gt_edge_m, sample_step_m)
     return out
+
+
+def uncertainty_metrics(recon_dir: Path, use: np.ndarray, err_rel: np.ndarray, accurate: np.ndarray,
+                        n_frames: int) -> dict | None:
+    """Returns how honest the run's own uncertainty is (``summary.json`` ``frames``: each frame's source,
+    ``sigma_rel`` and ``doubtful`` flag, and the run's ``verdict``), against the frames' errors.
+
+    ``use``: the capture frames scored, ``err_rel`` their centre errors over the diameter, ``accurate`` whether
+    each is accurate. Per source and over all: frames, share beyond 3 sigma (a frame without a sigma counts as
+    beyond), median error over sigma. Confident frames: every scored frame of a run marked trusted, the frames
+    not flagged doubtful in a run marked doubtful; ``confident_accurate_share`` is the share of them that are
+    accurate (issue #63: at least 0.99), ``confident_wrong`` how many are not. None without summary.json's
+    per-frame lists (or with another frame count).
+    """
+    try:
+        summary = json.loads((recon_dir / "summary.json").read_text())
+    except (OSError, ValueError):
+        return None
+    fr = summary.get("frames") if isinstance(summary, dict) else None
+    if not isinstance(fr, dict) or len(fr.get("sigma_rel") or []) != n_frames:
+        return None
+    src = [fr.get("source", [None] * n_frames)[i] or "none" for i in use]
+    sig = np.array([np.nan if fr["sigma_rel"][i] is None else float(fr["sigma_rel"][i]) for i in use])
+    flagged = np.array([bool((fr.get("doubtful") or [False] * n_frames)[i]) for i in use])
+    verdict = (summary.get("verdict") or {}).get("status", "trusted")
+    z = np.where(sig > 0, err_rel / np.where(sig > 0, sig, 1.0), np.inf)
+
+    def block(m: np.ndarray) -> dict:
+        return {"frames": int(m.sum()), "beyond_3sigma": float(np.mean(~(z[m] <= 3.0))) if m.any() else None,
+                "z_median": float(np.median(z[m])) if m.any() else None,
+                "sigma_median": float(np.nanmedian(sig[m])) if m.any() and np.isfinite(sig[m]).any() else None,
+                "error_median": float(np.median(err_rel[m])) if m.any() else None}
+
+    confident = ~flagged if verdict == "doubtful" else np.ones(len(use), bool)
+    return {"verdict": verdict, "by_source": {s: block(np.array(src) == s) for s in sorted(set(src))},
+            "all": block(np.ones(len(use), bool)), "flagged": int(flagged.sum()),
+            "confident": int(confident.sum()), "confident_wrong": int(np.sum(confident & ~accurate)),
+            "confident_accurate_share": float(np.mean(accurate[confident])) if confident.any() else None}
 
 
 def _zero_baseline_metrics(out: dict, R_est: np.ndarray, R_gt: np.ndarray, c_est: np.ndarray) -> dict:
@@ -536,9 +584,16 @@ def _line_metrics(recon_dir: Path, gt, sim, dist_m: float, angle_deg: float, cov
     s, A, t = sim
     E = np.concatenate([s * E[:, :3] @ A.T + t, s * E[:, 3:] @ A.T + t], axis=1)
     boxes = scene_boxes(gt.scene)
-    if boxes is not None:
+    polygon = (gt.scene or {}).get("room_polygon") if isinstance(gt.scene, dict) else None
+    if boxes is not None or polygon is not None:
         pts, own = _sample_segments(E, step_m, max_per=200)
-        d = distance_to_boxes(pts, boxes)
+        if boxes is not None:
+            d = distance_to_boxes(pts, boxes)
+        else:  # a panorama's room (synth.pano_room): the extruded floor polygon
+            from .synth.pano_room import distance_to_room
+
+            d = distance_to_room(pts, np.asarray(polygon["corners_xy"], dtype=np.float64), float(polygon["floor_z"]),
+                                 float(polygon["ceiling_z"]))
         per_line = np.bincount(own, weights=d, minlength=len(E)) / np.maximum(np.bincount(own, minlength=len(E)), 1)
         res["distance_m"] = {"median": float(np.median(per_line)), "mean": float(per_line.mean())}
         res[f"within_{dist_m:g}m_share"] = float(np.mean(per_line <= dist_m))
@@ -592,6 +647,14 @@ def format_metrics(m: dict) -> str:
                      f"std {_f(rp['std'])}  max {_f(rp['max'])}"))
         if rp.get("corner_error_m"):
             rows.append(("corner 3D error (m, aligned)", f"median {_f(rp['corner_error_m']['median'])}"))
+    un = m.get("uncertainty")
+    if un:
+        rows.append(("run's own verdict", f"{un['verdict']}; {un['confident']} confident frames, "
+                     f"{_f(un['confident_accurate_share'], '.1%') if un['confident_accurate_share'] is not None else '-'}"
+                     f" of them accurate ({un['confident_wrong']} wrong), {un['flagged']} flagged doubtful"))
+        for src, b in un["by_source"].items():
+            rows.append((f"  sigma honesty: {src}", f"{b['frames']} frames, {_f(b['beyond_3sigma'], '.1%')} beyond 3 "
+                         f"sigma, error/sigma median {_f(b['z_median'], '.2f')}"))
     ln = m.get("lines")
     if ln is None:
         rows.append(("lines", "no lines.ply"))

@@ -30,7 +30,7 @@ from .data import (Capture, NormalMaps, PointTracks, Preprocessed, Relations, Se
                    Thumbnails, Tracks)
 from .errors import InputError
 from .progress import stage
-from .summary import build_summary, peak_memory_mb, unregistered_why
+from .summary import build_summary, frame_status, peak_memory_mb, unregistered_why
 
 log = logging.getLogger("panosfm")
 
@@ -74,6 +74,15 @@ class RunResult:
             for why, count in sorted(fr.get("unregistered_reasons", {}).items(), key=lambda kv: -kv[1]):
                 lines.append(f"              {count} not: {why}")
             mm = ((s.get("residuals") or {}).get("bundle_adjust") or {}).get("motion_model") or {}
+            v = s.get("verdict") or {}
+            if v.get("status") in ("trusted", "doubtful"):
+                sig = [x for x in fr.get("sigma_rel") or [] if x is not None]
+                med = f", std median {100 * float(np.median(sig)):.2f} % of the spin's diameter" if sig else ""
+                lines.append(f"  verdict     {v['status'].upper()}{med}" + (f": {'; '.join(v['reasons'])}"
+                                                                          if v["reasons"] else ""))
+                first = next((i for i, w in enumerate(fr.get("doubtful_why") or []) if w), None)
+                if first is not None:
+                    lines.append(f"              e.g. frame {first}: {fr['doubtful_why'][first]}")
             if mm.get("lines_replaced"):
                 lines.append(f"              the line-fixed frames lay {100 * mm['lines_vs_points_rel']:.1f} % of the "
                              "spin's diameter from the point tracks' poses: the points' poses kept, lines retriangulated")
@@ -279,7 +288,7 @@ def _stages(capture: Capture, config: Config, cache: StageCache, result: RunResu
                 return _cached(cache, "points", key_points, PointTracks, lambda: _points(capture, pre, config),
                                timings, [])
 
-            key = stable_hash(key, code("bundle_adjust"), config.graph, key_points)
+            key = stable_hash(key, code("bundle_adjust"), config.graph, config.verify, key_points)
             result.solution = _cached(
                 cache, "bundle_adjust", key, Solution,
                 lambda: _bundle_adjust(pre, result, config, on_batch, points), timings, resumed)
@@ -398,22 +407,46 @@ def _linear(capture: Capture, pre: Preprocessed, tracks: Tracks, relations: Rela
 
 def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
                    on_batch: Callable[[int, Solution], None] | None,
-                   points: Callable[[], PointTracks] | None = None) -> Solution:
-    """The bundle adjustment stage (paper §3.4 and our additions: spin style, motion model, point tracks)."""
-    from .graph import (adjust_with_points, bundle_adjust, bundle_adjust_incremental, circle_rms_arm,
-                        drop_lines_beyond_room, place_by_motion_model, place_by_points_alone, points_replace_lines,
-                        solve_at_final_scale, steady_or_hand_held, steady_tried)
+                   points: Callable[[], PointTracks] | None = None, verify: bool = True) -> Solution:
+    """The bundle adjustment stage (paper §3.4 and our additions: spin style, motion model, point tracks), its
+    result checked against the lines' and the points' own solutions (``verify``: graph.reliability)."""
+    from .graph import verify_solution
+
+    evidence: list = []
+    sol = _adjust(pre, result, config, on_batch, points, evidence if verify else None)
+    if not verify or (result.linear.residuals.get("zero_baseline") or {}).get("detected"):
+        return sol
+    return verify_solution(pre, sol, config.verify, evidence=evidence)
+
+
+def _adjust(pre: Preprocessed, result: RunResult, config: Config, on_batch: Callable[[int, Solution], None] | None,
+            points: Callable[[], PointTracks] | None, evidence: list | None) -> Solution:
+    """The bundle adjustment, the motion model and the joint solve (:func:`_bundle_adjust`); ``evidence`` (a list, or
+    None: not collected) receives the independent solutions the result is checked against."""
+    from .graph import (Evidence, adjust_with_points, bundle_adjust, bundle_adjust_incremental, circle_rms_arm,
+                        compares_points, drop_lines_beyond_room, place_by_motion_model, place_by_points_alone,
+                        points_replace_lines, solve_at_final_scale, steady_or_hand_held, steady_tried)
 
     with_points = points is not None and config.points.enabled
 
     def place(sol: Solution, free: Solution | None = None) -> Solution:
         """The frames the lines leave without a pose placed by the motion model and the point tracks where the std
         is small enough (``free``: the points' own placement of ``sol``, made before), the BA with the point tracks
-        joined (graph/joint_points.py), lines beyond the room dropped."""
+        joined (graph/joint_points.py), lines beyond the room dropped. The lines' solution ``sol`` and the points'
+        own placement go to ``evidence`` (made here for it where the motion model would not compare them)."""
         joint = with_points and config.graph.points_joint_max_line_rms_ratio > 0
-        if with_points and result.points is None and (joint or (config.graph.motion_model and
-                                                                 not sol.registered.all())):
+        check = evidence is not None and with_points and config.verify.enabled and config.verify.points_check
+        if with_points and result.points is None and (joint or check or (config.graph.motion_model and
+                                                                          not sol.registered.all())):
             result.points = points()
+        if check and free is None:
+            alone = place_by_points_alone(pre, result.tracks, sol, config.graph, result.points, config.points,
+                                          always=True)
+            free = alone if compares_points(sol, config.graph) else None
+        else:
+            alone = free
+        if evidence is not None:
+            evidence.extend([Evidence.of("lines", sol), *([Evidence.of("points", alone)] if alone is not None else [])])
         sol = place_by_motion_model(pre, result.tracks, sol, config.graph, points=result.points,
                                     points_config=config.points, relations=result.relations, free=free)
         sol = adjust_with_points(pre, result.tracks, result.relations, sol, result.points, config.graph,
@@ -511,7 +544,7 @@ def _export(tmp: Path, capture: Capture, segments: Segments, result: RunResult, 
 
         log_recording(tmp / "recording.rrd", capture, result.preprocessed, result.tracks, result.relations,
                       sol, spawn=spawn, batches=result.batches or None, line_colors=colors,
-                      thumbnails=result.thumbnails, frame_status=unregistered_why(result, capture.n_frames))
+                      thumbnails=result.thumbnails, frame_status=frame_status(result, capture.n_frames))
         summary["seconds"]["rerun"] = round(time.perf_counter() - t0, 3)
     summary["peak_memory_mb"] = round(peak_memory_mb(), 1)
     write_summary(tmp / "summary.json", summary)

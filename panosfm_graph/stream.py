@@ -308,7 +308,7 @@ class Reconstruction:
             with stage("points", timings):
                 points = self._points(cap, pre)
         with stage("bundle_adjust", timings):
-            sol = _bundle_adjust(pre, held, cfg, None, (lambda: points) if points is not None else None)
+            sol = _bundle_adjust(pre, held, cfg, None, (lambda: points) if points is not None else None, verify=full)
         self.preprocessed, self.tracks, self.relations, self.linear, self.solution = pre, tracks, relations, linear, sol
         return sol
 

@@ -51,12 +51,34 @@ def unregistered_why(result: RunResult, n_frames: int) -> list[str]:
         return why
     sigma = sol.residuals.get("frame_sigma_rel") or [None] * n_frames
     bound = (sol.residuals.get("motion_model") or {}).get("max_sigma_rel")
+    checked = sol.residuals.get("frame_doubtful_why") or [None] * n_frames  # graph.reliability's left-out frames
     for i in range(n_frames):
         if sol.registered[i]:
             why[i] = UNREGISTERED_REASONS[0]
+        elif checked[i]:
+            why[i] = checked[i]
         elif sigma[i] is not None and bound is not None:
             why[i] = f"{why[i]}; the motion model's std is over {100 * bound:.1f} % of the spin's diameter"
     return why
+
+
+def frame_status(result: RunResult, n_frames: int) -> list[str]:
+    """Returns, per frame, what the rerun recording's ``status`` log says: "registered" with its std (and "doubtful:"
+    with why, graph.reliability), or why it is not registered (:func:`unregistered_why`)."""
+    why = unregistered_why(result, n_frames)
+    sol = result.solution
+    if sol is None:
+        return why
+    sig = sol.residuals.get("frame_sigma_rel") or [None] * n_frames
+    doubt = sol.residuals.get("frame_doubtful_why") or [None] * n_frames
+    out = []
+    for i in range(n_frames):
+        if not sol.registered[i]:
+            out.append(why[i])
+            continue
+        text = "registered" + (f" (std {100 * sig[i]:.2f} % of the spin's diameter)" if sig[i] is not None else "")
+        out.append(text + (f"; doubtful: {doubt[i]}" if doubt[i] else ""))
+    return out
 
 
 def _linear_residuals(result: RunResult) -> dict | None:
@@ -115,9 +137,13 @@ def build_summary(capture: Capture, segments: Segments, result: RunResult, confi
         # the parallax test (linear/baseline.py): detected -> one shared centre, no translation solved
         "zero_baseline": (result.linear.residuals.get("zero_baseline") if result.linear is not None else None),
         "spin_style": (sol.residuals.get("spin_style") if sol is not None and sol is not result.linear else None),
+        # the run checked against its independent solutions (graph.reliability): "trusted", or "doubtful" and why
+        "verdict": verdict(sol),
         "residuals": {"linear": linear_res,
                       "bundle_adjust": ({k: v for k, v in sol.residuals.items()
-                                         if k not in ("linear_steady", "frame_source", "frame_sigma_rel")}
+                                         if k not in ("linear_steady", "frame_source", "frame_sigma_rel",
+                                                      "frame_doubtful", "frame_doubtful_why", "frame_gap_rel",
+                                                      "frame_other_gap_rel", "frame_model_sigma_rel")}
                                         if sol is not None and sol is not result.linear else None)},
         "seconds": {k: round(v, 3) for k, v in timings.items()},
         "resumed_stages": resumed,
@@ -146,8 +172,26 @@ def _frame_sources(sol: Solution | None, n: int, zero_baseline: bool = False) ->
     fixed = "shared centre" if zero_baseline else "lines"
     src = sol.residuals.get("frame_source") or [fixed if r else None for r in sol.registered]
     sig = sol.residuals.get("frame_sigma_rel") or [None] * n
-    return {"by_source": dict(Counter(s for s in src if s is not None)), "source": list(src),
-            "sigma_rel": [None if v is None else round(float(v), 5) for v in sig]}
+    r5 = lambda v: None if v is None else round(float(v), 5)  # noqa: E731
+    out = {"by_source": dict(Counter(s for s in src if s is not None)), "source": list(src),
+           "sigma_rel": [r5(v) for v in sig]}
+    if "frame_doubtful" in sol.residuals:  # graph.reliability: every frame checked against independent solutions
+        out["doubtful"] = list(sol.residuals["frame_doubtful"])
+        out["doubtful_why"] = list(sol.residuals.get("frame_doubtful_why") or [None] * n)
+        out["doubtful_count"] = int(sum(out["doubtful"]))
+        out["evidence_gap_rel"] = [r5(v) for v in sol.residuals.get("frame_other_gap_rel") or [None] * n]
+        out["nearest_gap_rel"] = [r5(v) for v in sol.residuals.get("frame_gap_rel") or [None] * n]
+        out["model_sigma_rel"] = [r5(v) for v in sol.residuals.get("frame_model_sigma_rel") or [None] * n]
+    return out
+
+
+def verdict(sol: Solution | None) -> dict:
+    """Returns summary.json's ``verdict``: {"status": "trusted" | "doubtful" | "unchecked", "reasons": [...]}
+    (graph.reliability; "unchecked" where the run was not verified: no solution, a zero-baseline spin)."""
+    v = (sol.residuals or {}).get("verify") if sol is not None else None
+    if not v:
+        return {"status": "unchecked", "reasons": []}
+    return {"status": v["verdict"], "reasons": list(v["reasons"])}
 
 
 def _focal_summary(capture: Capture, result: RunResult, sol: Solution | None) -> dict[str, Any]:

@@ -12,7 +12,8 @@ Entities (world frame: right-handed, metres, +z up):
   ``world/lines``                 LineStrips3D: the 3D lines whose tracks were seen so far
   ``world/cameras``               Points3D: registered camera centres so far (green: fixed by lines, blue: placed
                                   by point tracks, orange: by the motion model alone)
-  ``status``                      TextLog: "registered", or why the frame is not (WARN)
+  ``status``                      TextLog: "registered" with its std (WARN where doubtful), or why the frame is not (WARN);
+                                  the run's verdict (static: "trusted", or "doubtful" and why)
 ``batch`` timeline (incremental solves)
   ``batch/lines``, ``batch/cameras``
 static (the final model, paper §4 'three views')
@@ -62,15 +63,19 @@ RELATION_RGB = np.array([[255, 0, 255], [0, 230, 230], [255, 220, 0], [255, 140,
 CAMERA_RGB = (40, 200, 40)
 MOTION_MODEL_RGB = (240, 150, 30)  # frames placed by the spin's motion model (graph.place_by_motion_model)
 POINTS_RGB = (40, 170, 230)  # frames placed by point tracks in the motion model's graph
+DOUBTFUL_RGB = (230, 30, 30)  # frames the reliability check doubts (graph.reliability), whatever placed them
 
 
 def camera_colors(solution: Solution) -> np.ndarray:
     """Returns (F, 3) uint8 RGB per frame: green where the lines fix the frame, blue where point tracks and orange
-    where the motion model alone placed it."""
+    where the motion model alone placed it; red where the reliability check doubts it."""
     src = (solution.residuals or {}).get("frame_source") or [None] * len(solution.registered)
     out = np.tile(np.array(CAMERA_RGB, np.uint8), (len(solution.registered), 1))
     out[[s == "motion model" for s in src]] = MOTION_MODEL_RGB
     out[[s == "points" for s in src]] = POINTS_RGB
+    doubt = (solution.residuals or {}).get("frame_doubtful")
+    if doubt is not None and len(doubt) == len(out):
+        out[np.asarray(doubt, bool)] = DOUBTFUL_RGB
     return out
 MODEL_UPDATES = 60  # the growing 3D model is logged at most this many times on the frame timeline
 
@@ -263,6 +268,11 @@ def log_recording(path: str | Path | None, capture: Any, pre: Preprocessed, trac
         if solution is not None:
             rec.reset_time()
             _log_final(rec, solution, line_colors)
+            v = (solution.residuals or {}).get("verify")
+            if v:  # graph.reliability's verdict, beside the frames' statuses
+                text = f"verdict: {v['verdict']}" + (f" ({'; '.join(v['reasons'])})" if v["reasons"] else "")
+                rec.log("status", rr.TextLog(text, level=rr.TextLogLevel.WARN if v["verdict"] != "trusted"
+                                             else rr.TextLogLevel.INFO), static=True)
     finally:
         rec.flush()
         rec.disconnect()
@@ -319,9 +329,10 @@ def _log_frames(rec: Any, capture: Any, pre: Preprocessed, tracks: Tracks | None
         jpeg = img if isinstance(img, bytes) else _encode(img, image_width)
         rec.log("world/camera/image", rr.EncodedImage(contents=jpeg, media_type="image/jpeg"))
         if frame_status is not None and i < len(frame_status):
-            ok = frame_status[i] == "registered"
-            text = f"frame {i}: " + ("registered" if ok else f"not registered: {frame_status[i]}")
-            rec.log("status", rr.TextLog(text, level=rr.TextLogLevel.INFO if ok else rr.TextLogLevel.WARN))
+            ok = frame_status[i].startswith("registered")
+            text = f"frame {i}: " + (frame_status[i] if ok else f"not registered: {frame_status[i]}")
+            good = ok and "doubtful" not in frame_status[i]
+            rec.log("status", rr.TextLog(text, level=rr.TextLogLevel.INFO if good else rr.TextLogLevel.WARN))
         if solution is not None and known[i]:
             rec.log("world/camera", rr.Transform3D(translation=centers[i], mat3x3=solution.R_wc[i]))
         else:

@@ -91,9 +91,10 @@ def test_a_shorter_arm_places_fewer_frames():
     assert counts[0] > counts[1] == 0
 
 
-def test_run_reports_each_frames_source_and_strict_keeps_line_fixed_frames(tmp_path):
-    """summary.json: frames.source / sigma_rel per frame, by_source counts; --strict: only "lines", same frames, and
-    no point tracks in the bundle adjustment (by default they join it)."""
+def test_run_reports_each_frames_source_and_lines_only_keeps_line_fixed_frames(tmp_path):
+    """summary.json: frames.source / sigma_rel per frame, by_source counts; without the motion model and the joint
+    solve: only "lines", the same frames, no point tracks in the bundle adjustment (by default they join it);
+    --strict: only frames an independent solution confirms, none doubtful."""
     import json
 
     from panosfm_graph.cli import main
@@ -102,7 +103,9 @@ def test_run_reports_each_frames_source_and_strict_keeps_line_fixed_frames(tmp_p
     cap = synthesize(tmp_path / "cap", scene="bedroom", n_frames=150, size=(480, 270), seed=2, gt_maps=False,
                      sway_m=0.05)
     runs, joint = {}, {}
-    for name, extra in (("default", []), ("strict", ["--strict"])):
+    lines_only = ["--set", "graph.motion_model=False", "--set", "graph.points_joint_max_line_rms_ratio=0",
+                  "--set", "verify.enabled=False"]
+    for name, extra in (("default", []), ("strict", lines_only), ("confirmed", ["--strict"])):
         out = tmp_path / name
         assert main(["run", str(cap), str(out), "--no-rerun", "--resume", *extra]) == 0
         summary = json.loads((out / "summary.json").read_text())
@@ -110,6 +113,9 @@ def test_run_reports_each_frames_source_and_strict_keeps_line_fixed_frames(tmp_p
         joint[name] = summary["residuals"]["bundle_adjust"].get("points_in_ba")
         assert summary["residuals"]["bundle_adjust"]["lines_beyond_room"] >= 0  # the room's bound was checked
     assert joint["strict"] is None and joint["default"]["kept"], joint
+    confirmed = runs["confirmed"]
+    assert 0 < confirmed["registered"] <= runs["default"]["registered"] and not any(confirmed["doubtful"])
+    assert all(s is None or g is not None for s, g in zip(confirmed["source"], confirmed["evidence_gap_rel"]))
     for fr in runs.values():
         assert len(fr["source"]) == fr["total"] == len(fr["sigma_rel"])
         assert sum(fr["by_source"].values()) == fr["registered"]
@@ -118,7 +124,8 @@ def test_run_reports_each_frames_source_and_strict_keeps_line_fixed_frames(tmp_p
     assert set(strict["by_source"]) <= {"lines"} and all(v is None for v in strict["sigma_rel"])
     assert default["by_source"].get("lines", 0) == strict["registered"]  # the motion model only adds frames
     placed = [i for i, s in enumerate(default["source"]) if s in ("motion model", "points")]
-    assert all(default["sigma_rel"][i] <= 0.025 for i in placed)
+    assert all(default["model_sigma_rel"][i] <= 0.025 for i in placed)  # the motion model's own bound
+    assert all(v is not None for v, r in zip(default["sigma_rel"], default["source"]) if r)  # every output frame
 
 
 def _point_tracks(R, c, n_points=4000, noise_px=0.1, seed=0):

@@ -50,10 +50,51 @@ def capture_dir(out: Path, scene: str, frames: int, size: tuple[int, int], seed:
                                + (f"-exp{exposure_s:g}" if exposure_s > 0 else ""))
 
 
+def parse_seeds(text: str) -> int | list[int]:
+    """Returns ``--seeds``: a count N (captures per scene, seeds SEED + k + 10 j) or an explicit list ("0-49",
+    "3,7,20-24": every capture of every scene takes these seeds)."""
+    text = str(text).strip()
+    if text.isdigit():
+        return int(text)
+    seeds: list[int] = []
+    for part in text.split(","):
+        a, _, b = part.strip().partition("-")
+        seeds += list(range(int(a), int(b) + 1)) if b else [int(a)]
+    return seeds
+
+
+def real_rooms(real_dir: Path) -> list[tuple[str, Path, Path]]:
+    """Returns (name, panorama, layout) of every panorama in ``real_dir`` with a layout (``NAME-corners.txt`` or
+    ``NAME-layout.json``), by name."""
+    out = []
+    for pano in sorted(p for p in real_dir.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg")):
+        for lay in (real_dir / f"{pano.stem}-corners.txt", real_dir / f"{pano.stem}-layout.json"):
+            if lay.is_file():
+                out.append((pano.stem, pano, lay))
+                break
+    return out
+
+
+def _synthesise(cap: Path, scene: str, frames: int, size: tuple[int, int], seed: int, sway_m: float,
+                exposure_s: float, photo_dir: Path | None, real: dict) -> None:
+    """Writes one benchmark capture: a preset at the benchmark's frames and sway, a procedural room with its own
+    spin (``random``: the photos of ``photo_dir`` painted on some surfaces), or a hand-held spin in a real
+    panorama's room (``real:NAME``, ``real`` maps names to (panorama, layout))."""
+    from panosfm_graph.synth import room_spin, synthesize
+
+    if scene.startswith("real:"):
+        pano, lay = real[scene[5:]]
+        room_spin(pano, lay, cap, n_frames=frames, size=size, seed=seed, sway_m=sway_m)
+    elif scene == "random":
+        synthesize(cap, scene="random", size=size, seed=seed, gt_maps=False, photo_dir=photo_dir)
+    else:
+        synthesize(cap, scene=scene, n_frames=frames, size=size, seed=seed, sway_m=sway_m, exposure_s=exposure_s)
+
+
 def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peers: list[str],
-          seed: int = 0, reuse_peer: bool = False, seeds: int = 1, settings: list[str] = (),
+          seed: int = 0, reuse_peer: bool = False, seeds: int | list[int] = 1, settings: list[str] = (),
           resume: bool = False, sway_m: float = 0.0, drop_captures: bool = False, every: int = 1,
-          exposure_s: float = 0.0) -> dict:
+          exposure_s: float = 0.0, photo_dir: Path | None = None, real: dict | None = None) -> dict:
     """Returns the benchmark record (also written to ``out/bench.json`` and ``out/bench.md``).
 
     With ``drop_captures`` each capture is deleted once its runs are scored (1.6-1.7 GB each at 300 frames
@@ -64,24 +105,29 @@ def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peer
     """
     from panosfm_graph.capture import load_capture
     from panosfm_graph.evaluate import evaluate_reconstruction
-    from panosfm_graph.synth import synthesize
 
     out.mkdir(parents=True, exist_ok=True)
     record = {"date": datetime.date.today().isoformat(), "machine": f"{platform.machine()}, {os.cpu_count()} cores",
               "frames": frames, "size": list(size), "scenes": {}}
-    runs = [(k, scene, j) for j in range(max(seeds, 1)) for k, scene in enumerate(scenes)]
+    if isinstance(seeds, int):  # capture j of scene k: seed + k + 10 j
+        runs = [(k, scene, j, seed + k + 10 * j) for j in range(max(seeds, 1)) for k, scene in enumerate(scenes)]
+    else:  # explicit seeds: every scene with each
+        runs = [(k, scene, j, s) for j, s in enumerate(seeds) for k, scene in enumerate(scenes)]
     set_args = [a for kv in settings for a in ("--set", kv)]
     record["settings"] = list(settings)
     record["sway_m"] = sway_m
     record["every"] = every
     record["exposure_s"] = exposure_s
-    for k, scene, j in runs:
-        name = scene if j == 0 else f"{scene}#{j}"  # capture j of the scene: seed + k + 10 j
-        cap = capture_dir(out, scene, frames, size, seed + k + 10 * j, sway_m, exposure_s)
+    record["seeds"] = seeds if isinstance(seeds, list) else None
+    for k, scene, j, cap_seed in runs:
+        name = scene if j == 0 else f"{scene}#{j}"
+        if isinstance(seeds, list):
+            name = f"{scene}#s{cap_seed}"
+        cap = (out / "captures" / f"random-s{cap_seed}-{size[0]}x{size[1]}" if scene == "random"
+               else capture_dir(out, scene.replace("real:", "real-"), frames, size, cap_seed, sway_m, exposure_s))
         if not (cap / "imu.csv").exists():
             t0 = time.perf_counter()
-            synthesize(cap, scene=scene, n_frames=frames, size=size, seed=seed + k + 10 * j, sway_m=sway_m,
-                       exposure_s=exposure_s)
+            _synthesise(cap, scene, frames, size, cap_seed, sway_m, exposure_s, photo_dir, real or {})
             print(f"[{scene}] synthesised in {time.perf_counter() - t0:.1f} s", flush=True)
         gt = load_capture(cap).ground_truth
         height = gt.camera_height_m
@@ -106,8 +152,9 @@ def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peer
         record["scenes"][name] = entry
         if drop_captures:
             shutil.rmtree(cap, ignore_errors=True)
-    if seeds > 1:
+    if isinstance(seeds, list) or seeds > 1:
         record["median_over_seeds"] = _medians(record["scenes"], scenes)
+        record["distribution"] = distribution(record["scenes"], scenes)
     from panosfm_graph.export import to_jsonable
 
     (out / "bench.json").write_text(json.dumps(to_jsonable(record), indent=2))
@@ -121,6 +168,56 @@ def bench(scenes: list[str], frames: int, size: tuple[int, int], out: Path, peer
 METRICS = {"registered": ("registered_share",), "accurate": ("accurate_share",), "centre": ("center_error_rel", "median"),
            "rotation": ("rotation_error_rotalign_deg", "median"), "reprojection": ("reprojection_px", "mean"),
            "lines": ("lines", "distance_m", "median"), "recovered": ("lines", "recovered_share")}
+
+
+# per-capture figures whose spread is reported (p10 / median / worst), and which end is the worst
+SPREAD = {"registered": (("registered_share",), "low"), "accurate": (("accurate_share",), "low"),
+          "confident accurate": (("uncertainty", "confident_accurate_share"), "low"),
+          "centre": (("center_error_rel", "median"), "high"), "corners": (("reprojection_px", "mean"), "high"),
+          "lines": (("lines", "distance_m", "median"), "high"),
+          "beyond 3 sigma": (("uncertainty", "all", "beyond_3sigma"), "high"),
+          "seconds per 300 frames": ((), "high")}
+
+
+def distribution(runs: dict, scenes: list[str], method: str = "panosfm") -> dict:
+    """Returns {scene: {figure: {"p10", "median", "worst", "captures"}}} over the scene's captures: the 10th
+    percentile from the bad end (the share of captures at least this bad is 10 %), the median and the worst;
+    a failed run counts 0 for shares ("all": every capture of every scene, where there are several). Also, per frame
+    source, the share of frames beyond 3 sigma pooled over
+    the captures (issue #63's calibration bar), and the captures whose run called itself doubtful."""
+    import numpy as np
+
+    out: dict = {}
+    for scene in scenes + (["all"] if len(scenes) > 1 else []):
+        entries = [e.get(method) for name, e in runs.items()
+                   if (scene == "all" or name.split("#")[0] == scene) and method in e]
+        figs: dict = {}
+        for key, (path, bad) in SPREAD.items():
+            vals = []
+            for r in entries:
+                if key == "seconds per 300 frames":
+                    v = None if "error" in r else r["wall_s"] * 300.0 / max(_m(r, "run_frames") or _m(r, "frames") or 300, 1)
+                else:
+                    v = 0.0 if ("error" in r and bad == "low") else _m(r, *path)
+                if v is not None:
+                    vals.append(float(v))
+            if not vals:
+                continue
+            v = np.array(vals)
+            figs[key] = {"p10": float(np.percentile(v, 10 if bad == "low" else 90)), "median": float(np.median(v)),
+                         "worst": float(v.min() if bad == "low" else v.max()), "captures": len(v)}
+        pooled: dict = {}
+        for r in entries:
+            for src, b in ((_m(r, "uncertainty", "by_source") or {}).items()):
+                n, share = b.get("frames") or 0, b.get("beyond_3sigma")
+                if n and share is not None:
+                    p = pooled.setdefault(src, [0, 0.0])
+                    p[0] += n
+                    p[1] += share * n
+        figs["beyond 3 sigma by source"] = {s: {"frames": n, "share": w / n} for s, (n, w) in pooled.items()}
+        figs["doubtful runs"] = sum(1 for r in entries if _m(r, "uncertainty", "verdict") == "doubtful")
+        out[scene] = figs
+    return out
 
 
 def _medians(runs: dict, scenes: list[str]) -> dict:
@@ -214,6 +311,23 @@ def format_bench(record: dict) -> str:
                             f"| {f(None if v['accurate'] is None else 100 * v['accurate'], '.1f')} % "
                             f"| {f(None if cen is None else 100 * cen, '.2f')} | {f(v['rotation'], '.3f')} "
                             f"| {f(v['reprojection'], '.2f')} | {f(v['lines'], '.3f')} |")
+    dist = record.get("distribution")
+    if dist:
+        rows += ["", "Spread over the captures of each scene (p10: the 10th percentile from the bad end):", "",
+                 "| scene | figure | captures | p10 | median | worst |", "|" + "---|" * 6]
+        for scene, figs in dist.items():
+            for key, v in figs.items():
+                if isinstance(v, dict) and "median" in v:
+                    pct = key in ("registered", "accurate", "confident accurate", "centre", "beyond 3 sigma")
+                    sc, spec = (100.0, ".1f") if pct else (1.0, ".2f" if key != "lines" else ".3f")
+                    rows.append(f"| {scene} | {key}{' (%)' if pct else ''} | {v['captures']} | {sc * v['p10']:{spec}} "
+                                f"| {sc * v['median']:{spec}} | {sc * v['worst']:{spec}} |")
+            by = figs.get("beyond 3 sigma by source") or {}
+            if by:
+                rows.append(f"| {scene} | beyond 3 sigma by source (pooled frames) | | "
+                            + "; ".join(f"{s}: {100 * b['share']:.1f} % of {b['frames']}" for s, b in by.items())
+                            + " | | |")
+            rows.append(f"| {scene} | runs that called themselves doubtful | {figs.get('doubtful runs', 0)} | | | |")
     return "\n".join(rows)
 
 
@@ -268,7 +382,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--resume", action="store_true",
                    help="reuse the cached stages of earlier runs in OUT (copy a runs/ folder there): fast setting "
                         "sweeps; seconds then no longer measure the whole pipeline")
-    p.add_argument("--seeds", type=int, default=1, help="captures per scene (seeds SEED + k + 10 j)")
+    p.add_argument("--seeds", default="1", help="captures per scene (a count N: seeds SEED + k + 10 j), or the "
+                   "seeds themselves for every scene ('0-49', '3,7,20-24'); with --scenes random each seed is a "
+                   "procedural room and spin of its own (its frames and sway: --frames and --sway do not apply)")
+    p.add_argument("--photo-textures", default=None, metavar="DIR",
+                   help="with --scenes random: paint some surfaces with crops of the equirectangular photos in DIR "
+                        "(e.g. ../shared/real)")
+    p.add_argument("--real", default=None, metavar="DIR",
+                   help="add a scene real:NAME per panorama in DIR with a layout (NAME-corners.txt or "
+                        "NAME-layout.json): a hand-held spin inside its room (panosfm synth --panorama --layout "
+                        "--sway; --sway defaults to 0.05 there), at --size")
     p.add_argument("--sway", type=float, default=0.0, metavar="M",
                    help="synthesise spins that depart this far (m RMS) from an ideal circle (panosfm synth --sway)")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
@@ -289,11 +412,18 @@ def main(argv: list[str] | None = None) -> int:
         peers = [s.strip() for s in args.peer.split(",") if s.strip()]
     frames = [int(v) for v in args.frames.split(",") if v.strip()]
     out = Path(args.out)
+    scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
+    real, sway = {}, args.sway
+    if args.real:
+        real = {name: (pano, lay) for name, pano, lay in real_rooms(Path(args.real))}
+        scenes = [s for s in scenes if s != "real"] + [f"real:{name}" for name in real]
+        sway = sway or 0.05
     records = {}
     for n in frames:
-        records[n] = bench([s.strip() for s in args.scenes.split(",")], n, (w, h),
-                           out / f"f{n}" if len(frames) > 1 else out, peers, args.seed, args.reuse_peer, args.seeds,
-                           args.set, args.resume, args.sway, args.drop_captures, args.every, args.exposure)
+        records[n] = bench(scenes, n, (w, h), out / f"f{n}" if len(frames) > 1 else out, peers, args.seed,
+                           args.reuse_peer, parse_seeds(args.seeds), args.set, args.resume, sway,
+                           args.drop_captures, args.every, args.exposure,
+                           Path(args.photo_textures) if args.photo_textures else None, real)
     if len(frames) > 1:
         summary = speeds_summary(records)
         (out / "speeds.json").write_text(json.dumps(summary, indent=2))

@@ -8,7 +8,7 @@ Needs the ``train`` extra (torch, onnx); the package itself only runs the
 exported ONNX file with onnxruntime (:mod:`panosfm_graph.normals.onnx`).
 
 Data (rendered once, cached as one ``.npz`` in /tmp): views of seeded
-``random`` rooms from :mod:`panosfm_graph.synth` only -- the named presets
+furnished box rooms (``panosfm_graph.synth.scenes.random_box_room``) only -- the named presets
 ``living``, ``bedroom`` and ``office`` are held out for evaluation. Each view
 is rendered at twice the training size and area-downsampled (as the runner
 resizes a frame), with a random camera (within 0.45 m of the room's stand
@@ -75,12 +75,13 @@ def random_view(scene, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray
 def render_sample(index: int, seed: int, views_per_room: int = 6) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Returns one training sample: (RGB uint8 (h, w, 3), normals float16 (h, w, 3), valid bool (h, w))."""
     from panosfm_graph.normals import resize_normals
-    from panosfm_graph.synth import intrinsics, make_scene, render_frame
+    from panosfm_graph.synth import intrinsics, render_frame
+    from panosfm_graph.synth.scenes import random_box_room
 
     cv2.setNumThreads(1)
     rng = np.random.default_rng([seed, index, 271828])
     room_seed = 10_000 + seed * 100_000 + index // views_per_room  # random rooms only; presets held out
-    scene = make_scene("random", room_seed)
+    scene = random_box_room(room_seed)
     if rng.random() < 0.7:  # a random light from above (the renderer's default otherwise)
         light = np.array([*rng.normal(0.0, 0.6, 2), rng.uniform(0.3, 1.0)])
         scene = dataclasses.replace(scene, light_dir=light / np.linalg.norm(light))
@@ -122,7 +123,8 @@ def render_dataset(n: int, seed: int = 0, workers: int = 2) -> dict[str, np.ndar
 def held_out_frames(scenes=HELD_OUT, per_scene: int = 8, seed: int = 0) -> dict[str, np.ndarray]:
     """Returns held-out validation samples: spin views of the named preset rooms (same layout as render_dataset)."""
     from panosfm_graph.normals import resize_normals
-    from panosfm_graph.synth import intrinsics, make_scene, render_frame, spin_trajectory
+    from panosfm_graph.synth import intrinsics, render_frame
+    from panosfm_graph.synth.scenes import random_box_room, spin_trajectory
 
     w, h = TRAIN_SIZE
     size = (w * RENDER_SCALE, h * RENDER_SCALE)

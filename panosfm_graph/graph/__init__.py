@@ -99,7 +99,9 @@ Layout (one job per module; the package re-exports the names other modules use):
 * :mod:`.motion_model`  :func:`place_by_motion_model`, the frames the lines leave without a pose placed by the spin
   model and the point tracks (:mod:`panosfm_graph.points`), with their std (issue #40);
 * :mod:`.held_poses`    :func:`adjust_lines_at_poses`, the lines adjusted with the poses held and the relations;
-* :mod:`.joint_points`  :func:`adjust_with_points`, the bundle adjustment solved again with the point tracks joined.
+* :mod:`.joint_points`  :func:`adjust_with_points`, the bundle adjustment solved again with the point tracks joined;
+* :mod:`.reliability`   :func:`verify_solution`, the result checked against the lines' and the points' own solutions:
+  every frame's honest std, the doubtful frames and the run's verdict (issue #63).
 """
 from __future__ import annotations
 
@@ -108,10 +110,11 @@ from .held_poses import adjust_lines_at_poses
 from .joint_points import adjust_with_points
 from .factor_graph import CHUNK_OBS, FOCAL_PRIOR_FRAC, GAUGE_SIGMA
 from .lm import levenberg_marquardt
-from .motion_model import place_by_motion_model, place_by_points_alone, points_replace_lines
+from .motion_model import compares_points, place_by_motion_model, place_by_points_alone, points_replace_lines
 from .problem import (ARM_KEY, DRIFT_KEY, FLOOR_KEY, FOCAL_KEY, center_key, floor_held_scale, line_key, relation_residuals,
                       relation_sigmas, rotation_key, stand_key)
 from .readout import drop_lines_beyond_room, line_extents
+from .reliability import Evidence, honest_sigma, verify_solution
 from .rotation_only import rotation_bundle_adjust
 from .scale import _scaled
 from .solve import MAX_REJECT_ROUNDS, bundle_adjust, bundle_adjust_incremental, solve_at_final_scale
@@ -120,6 +123,7 @@ from .style import steady_or_hand_held, steady_tried
 
 __all__ = [
     "ARM_KEY", "CHUNK_OBS", "DRIFT_KEY", "FLOOR_KEY", "FOCAL_KEY", "FOCAL_PRIOR_FRAC", "GAUGE_SIGMA", "MAX_REJECT_ROUNDS",
+    "Evidence", "compares_points", "honest_sigma", "verify_solution",
     "adjust_lines_at_poses", "adjust_with_points", "bundle_adjust", "bundle_adjust_incremental", "center_key", "circle_rms_arm", "determinacy", "drop_lines_beyond_room",
     "fit_spin", "floor_held_scale",
     "focal_sigma", "levenberg_marquardt", "line_extents", "line_key", "place_by_motion_model", "place_by_points_alone", "points_replace_lines", "relation_residuals", "relation_sigmas",

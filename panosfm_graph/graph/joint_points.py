@@ -18,7 +18,8 @@ gauge the points do not fix: the result is scaled back to the solution's own spr
 plain room swaying (seed 11) the joint solve left its few lines 18.3 cm from the surfaces, 10.7 cm after.
 
 Not worse than its input by its own measure: where the lines' RMS reprojection distance ends more than
-``graph.points_joint_max_line_rms_ratio`` times theirs before (and 0.5 px more), or the system is singular,
+``graph.points_joint_max_line_rms_ratio`` times theirs before (and 0.5 px more), the spin's spread of centres
+changes more than twofold (the points pull a poorly held spin towards one centre), or the system is singular,
 the solution is kept as it was and ``residuals["points_in_ba"]["kept"]`` says so
 (docs/decisions.md#points-in-the-bundle-adjustment).
 """
@@ -44,6 +45,7 @@ from .solve import _insert_spin
 log = logging.getLogger("panosfm.graph")
 
 MIN_LINE_RMS_SLACK_PX = 0.5  # the lines' RMS may grow by this much whatever the ratio (a sub-pixel fit loosening)
+MIN_SCALE_CHANGE = 0.5  # the joint solve's spread of centres within this factor of its input's, else it is not kept
 
 
 def _spread(centers: np.ndarray) -> float:
@@ -108,13 +110,19 @@ def adjust_with_points(pre: Preprocessed, tracks: Tracks, relations: Relations, 
         log.warning("bundle adjustment with the point tracks: the lines fit worse (RMS %.2f -> %.2f px, at most "
                     "%.2f): kept without them", line_rms0, line_rms1, bound)
         return dataclasses.replace(sol, residuals={**sol.residuals, "points_in_ba": record})
-    record["kept"] = True
     reg = sol.registered
     scale = _spread(sol.centers[reg]) / max(_spread(out.centers[reg]), 1e-300)  # the scale's gauge, as it was
+    record["scale"] = scale
+    if not MIN_SCALE_CHANGE <= scale <= 1.0 / MIN_SCALE_CHANGE:
+        # the spin shrank towards one point (or blew up): the points fit a rotation-only spin better than a real one
+        # (measured, procedural room 28: points 0.81 -> 0.17 px with the centres 62 times closer, then 16.6 % off)
+        log.warning("bundle adjustment with the point tracks: the spin's spread changed %.1f times: kept without them",
+                    scale if scale >= 1 else 1 / scale)
+        return dataclasses.replace(sol, residuals={**sol.residuals, "points_in_ba": record})
+    record["kept"] = True
     out = _scaled(out, scale)
     if values.exists(FLOOR_KEY):
         out.residuals["floor_height"] = scale * float(values.atVector(FLOOR_KEY)[0])
-    record["scale"] = scale
     out.residuals["points_in_ba"] = record
     if "lines_held_poses" in sol.residuals:  # the points placed the frames: the lines adjusted at them again
         out = adjust_lines_at_poses(pre, tracks, relations, out, config)

@@ -99,9 +99,12 @@ def _zero_baseline_or_not(pre: Preprocessed, tracks: Tracks, relations: Relation
                           config: LinearConfig) -> Solution:
     """Returns the zero-translation solve when the spin shows no parallax, else the solve; both record the test."""
     median, p90, n = parallax_px(pre, tracks, camera, config.zero_baseline_min_turn_deg)
-    detected = bool(n > 0 and median < config.zero_baseline_px)
+    # a big room seen at low resolution: most lines far, the median drift under the threshold; the near lines' drift
+    # (the 90th percentile) still shows the arm (docs/decisions.md#zero-baseline-by-the-near-lines)
+    detected = bool(n > 0 and median < config.zero_baseline_px and not p90 >= config.zero_baseline_p90_px)
     test = {"parallax_px": None if n == 0 else round(median, 3), "parallax_p90_px": None if n == 0 else round(p90, 3),
-            "tracks": n, "threshold_px": config.zero_baseline_px, "detected": detected}
+            "tracks": n, "threshold_px": config.zero_baseline_px, "threshold_p90_px": config.zero_baseline_p90_px,
+            "detected": detected}
     rest = dataclasses.replace(config, zero_baseline_px=0.0, zero_translation=detected)
     sol = solve_linear(pre, tracks, relations, camera, rest)
     sol.residuals["zero_baseline"] = test

@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from .scenes import Scene
+from .textures import paint_photos
 
 TEXTURE_TILE_PX = 512  # periodic texture tile (texels)
 TEXTURE_TILE_M = 1.0  # one tile covers this many metres of surface
@@ -154,7 +155,10 @@ def raycast(scene: Scene, K: np.ndarray, R_wc: np.ndarray, center: np.ndarray, s
 
 
 def shade(scene: Scene, hits: dict[str, np.ndarray], texture: float = 1.0, texture_seed: int = 0) -> np.ndarray:
-    """Returns the (H, W, 3) float32 RGB image in 0..1 of ray-cast hits: colour x light x texture."""
+    """Returns the (H, W, 3) float32 RGB image in 0..1 of ray-cast hits: colour x light x texture (a scene with
+    per-surface textures: :func:`_shade_surfaces`)."""
+    if scene.textures is not None:
+        return _shade_surfaces(scene, hits, texture, texture_seed)
     surface, axis, nsign = hits["surface"], hits["axis"], hits["nsign"]
     colors = np.vstack([scene.shell_colors, scene.box_colors.reshape(-1, 3)]).astype(np.float32)
     L = scene.light_dir.astype(np.float32)
@@ -177,6 +181,38 @@ def shade(scene: Scene, hits: dict[str, np.ndarray], texture: float = 1.0, textu
             tex += wgt * cv2.remap(mips[lv], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
         lam = lam * (1.0 + np.float32(TEXTURE_CONTRAST * texture) * tex)
     return colors[surface] * lam[..., None]
+
+
+def _shade_surfaces(scene: Scene, hits: dict[str, np.ndarray], texture: float, texture_seed: int) -> np.ndarray:
+    """Returns :func:`shade`'s image for a scene whose surfaces carry their own textures (:mod:`.textures`):
+    the noise tile at each surface's contrast and scale, photos painted over their surfaces."""
+    surface, axis, nsign = hits["surface"], hits["axis"], hits["nsign"]
+    tx = scene.textures
+    colors = np.vstack([scene.shell_colors, scene.box_colors.reshape(-1, 3)]).astype(np.float32)
+    L = scene.light_dir.astype(np.float32)
+    lam = AMBIENT + DIFFUSE * (nsign * L[axis])
+    shaded = lam
+    contrast = tx.contrast.astype(np.float32) * np.float32(texture)
+    if texture > 0 and np.any(contrast > 0):
+        n_tile = TEXTURE_TILE_PX
+        rng = np.random.default_rng([int(texture_seed), 5])
+        offs = rng.uniform(0, n_tile, (len(colors), 2)).astype(np.float32)
+        scale = (np.float32(n_tile) / tx.tile_m.astype(np.float32))[surface]
+        mx = np.mod(hits["plane_uv"][0] * scale + offs[surface, 0], np.float32(n_tile))
+        my = np.mod(hits["plane_uv"][1] * scale + offs[surface, 1], np.float32(n_tile))
+        cos_inc = np.maximum(np.abs(hits["normal_cam"][..., 2]), np.float32(0.2))
+        footprint = hits["depth"] * (scale / np.float32(hits["focal_px"])) / cos_inc
+        lev = np.clip(np.log2(np.maximum(footprint, np.float32(1e-6))), 0, MIP_LEVELS - 1)
+        mips = texture_mips(int(texture_seed))
+        tex = np.zeros_like(lev)
+        for lv in range(int(np.floor(lev.min())), int(np.ceil(lev.max())) + 1):
+            wgt = np.maximum(np.float32(1.0) - np.abs(lev - np.float32(lv)), np.float32(0.0))
+            tex += wgt * cv2.remap(mips[lv], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        shaded = lam * (1.0 + contrast[surface] * tex)
+    img = colors[surface] * shaded[..., None]
+    if len(tx.photos):
+        paint_photos(img, hits, lam, tx)
+    return img
 
 
 def finish(img_rgb: np.ndarray, blur: float = 0.0, noise: float = 0.0, seed: int = 0) -> np.ndarray:

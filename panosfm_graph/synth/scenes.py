@@ -42,10 +42,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .textures import SurfaceTextures, textures_from_json
+
 SCENES: tuple[str, ...] = ("living", "bedroom", "office", "random", "bare", "plain", "hall", "narrow")
 
-# Box kinds (informational; all are solid axis-aligned boxes).
-FURNITURE, DOOR, WINDOW, POSTER = "furniture", "door", "window", "poster"
+# Box kinds (all are solid axis-aligned boxes). STRUCTURE: part of the room's own shape (the solid corner of an
+# L-shaped room, the wall beside an alcove, a pillar, a gallery, a beam): its faces are walls.
+FURNITURE, DOOR, WINDOW, POSTER, STRUCTURE = "furniture", "door", "window", "poster", "structure"
 
 _WALLS = ("-x", "+x", "-y", "+y")  # shell face order 0..3; 4 = floor, 5 = ceiling
 
@@ -109,6 +112,7 @@ class Scene:
     t_world_room: np.ndarray
     stand_point: np.ndarray
     light_dir: np.ndarray
+    textures: SurfaceTextures | None = None  # per-surface textures (procedural rooms); None: one noise for all
 
     @property
     def n_boxes(self) -> int:
@@ -162,6 +166,8 @@ class Scene:
                     labels.append(np.full(len(p), a, dtype=np.int8))
         L = np.concatenate(lines)
         lab = np.concatenate(labels)
+        if STRUCTURE in self.box_kinds:
+            L, lab = crease_pieces(L, lab, mins, maxs)
         keep = np.linalg.norm(L[:, 3:] - L[:, :3], axis=1) >= max(min_length_m, 1e-9)
         L, lab = L[keep], lab[keep]
         if frame == "world":
@@ -236,6 +242,7 @@ class Scene:
                 for n, k, lo, hi, c in zip(self.box_names, self.box_kinds, self.boxes_min, self.boxes_max, self.box_colors)
             ],
             "shell_colors": r(self.shell_colors),
+            **({"textures": self.textures.to_json()} if self.textures is not None else {}),
         }
 
 
@@ -259,7 +266,62 @@ def scene_from_json(d: dict) -> Scene:
         t_world_room=np.asarray(d["t_world_room"], dtype=np.float64),
         stand_point=np.asarray(d.get("stand_point_room", [0, 0, 0]), dtype=np.float64),
         light_dir=np.asarray(d.get("light_dir_room", [0.5, 0.3, 0.81]), dtype=np.float64),
+        textures=textures_from_json(d.get("textures")),
     )
+
+
+def crease_pieces(lines: np.ndarray, labels: np.ndarray, mins: np.ndarray, maxs: np.ndarray, eps: float = 2e-3
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Returns the parts of axis-aligned room-frame edges (M, 6) that are creases of the free space.
+
+    ``mins`` / ``maxs`` (1 + B, 3): the shell (free inside) then solid boxes. Each edge is cut where a box
+    begins or ends along it; a piece is a crease where the four quadrants about it (``eps`` off the edge) are
+    not two neighbouring free ones and two solid ones (a flat surface), all free or all solid. Pieces that
+    are creases and touch are joined again.
+    """
+    if not len(lines):
+        return lines, labels
+    axis = labels.astype(int)
+    lo_e = np.minimum(lines[:, :3], lines[:, 3:])[np.arange(len(lines)), axis]
+    hi_e = np.maximum(lines[:, :3], lines[:, 3:])[np.arange(len(lines)), axis]
+    cuts = np.concatenate([mins, maxs])  # (2(1+B), 3)
+    out, out_lab = [], []
+    for a in range(3):
+        b, c = _other_axes(a)
+        idx = np.flatnonzero(axis == a)
+        if not len(idx):
+            continue
+        t = np.unique(cuts[:, a])
+        for e in idx:
+            ts = np.concatenate([[lo_e[e]], t[(t > lo_e[e]) & (t < hi_e[e])], [hi_e[e]]])
+            mid = 0.5 * (ts[:-1] + ts[1:])
+            p = np.repeat(lines[e, None, :3], len(mid), axis=0)
+            p[:, a] = mid
+            free = []
+            for db, dc in ((eps, eps), (-eps, eps), (-eps, -eps), (eps, -eps)):  # quadrants in turn
+                q = p.copy()
+                q[:, b] += db
+                q[:, c] += dc
+                inside_shell = np.all((q > mins[0]) & (q < maxs[0]), axis=1)
+                in_box = np.any(np.all((q[:, None] > mins[None, 1:]) & (q[:, None] < maxs[None, 1:]), axis=2), axis=1)
+                free.append(inside_shell & ~in_box)
+            free = np.stack(free, axis=1)
+            n_free = free.sum(axis=1)
+            flat = (n_free == 2) & ((free[:, 0] == free[:, 1]) | (free[:, 1] == free[:, 2]))
+            crease = (n_free > 0) & (n_free < 4) & ~flat
+            start = None
+            for k in range(len(mid) + 1):
+                if k < len(mid) and crease[k]:
+                    start = ts[k] if start is None else start
+                elif start is not None:
+                    seg = np.repeat(lines[e, None, :3], 2, axis=0)
+                    seg[0, a], seg[1, a] = start, ts[k]
+                    out.append(seg.ravel())
+                    out_lab.append(a)
+                    start = None
+    if not out:
+        return np.zeros((0, 6)), np.zeros(0, np.int8)
+    return np.array(out), np.array(out_lab, dtype=np.int8)
 
 
 # --------------------------------------------------------------------------- builders
@@ -465,8 +527,9 @@ def _random_color(rng: np.random.Generator, lum: tuple[float, float]) -> np.ndar
     return np.clip(c * target / max(y, 1e-3), 0.02, 1.0)
 
 
-def _random_room(seed: int) -> Scene:
-    """Returns a seeded random room: size, yaw, door, window, posters, 3-6 furniture pieces."""
+def random_box_room(seed: int) -> Scene:
+    """Returns a seeded furnished box room: size, yaw, door, window, posters, 3-6 furniture pieces (the rooms the
+    shipped normal network was trained on, ``tools/train_normals.py``; ``--scene random`` is :mod:`.procedural`)."""
     rng = np.random.default_rng([seed, 7311])
     W, D, H = rng.uniform(3.6, 7.0), rng.uniform(3.2, 6.0), rng.uniform(2.4, 3.0)
     b = _Builder((W, D, H))
@@ -600,14 +663,23 @@ def _pick_stand_point(b: _Builder, rng: np.random.Generator, clearance_m: float 
     return float(p[i, 0]), float(p[i, 1])
 
 
-_PRESETS = {"living": _living, "bedroom": _bedroom, "office": _office, "random": _random_room, "bare": _bare,
+def _procedural(seed: int, photo_dir=None) -> Scene:
+    from .procedural import procedural_room
+
+    return procedural_room(seed, photo_dir)
+
+
+_PRESETS = {"living": _living, "bedroom": _bedroom, "office": _office, "random": _procedural, "bare": _bare,
             "plain": _plain, "hall": _hall, "narrow": _narrow}
 
 
-def make_scene(name: str, seed: int = 0) -> Scene:
-    """Returns the named scene (``SCENES``); ``seed`` only changes the ``random`` room's layout."""
+def make_scene(name: str, seed: int = 0, photo_dir=None) -> Scene:
+    """Returns the named scene (``SCENES``); ``seed`` only changes the ``random`` room (:mod:`.procedural`), which
+    paints some surfaces with crops of the equirectangular photos in ``photo_dir`` where given."""
     from ..errors import InputError
 
     if name not in _PRESETS:
         raise InputError(f"unknown scene {name!r}; choose one of {', '.join(SCENES)}")
+    if name == "random":
+        return _procedural(int(seed), photo_dir)
     return _PRESETS[name](int(seed))

@@ -85,6 +85,10 @@ def motion_blur_px(K: np.ndarray, R_wc: np.ndarray, ts: np.ndarray, exposure_s: 
     return exposure_s * at_frame * float(K[0, 0])
 
 
+def _or(value, default):
+    return default if value is None else value
+
+
 def _write_csv(path: Path, header: str, rows: list[str]) -> None:
     path.write_text(header + "\n" + "".join(r + "\n" for r in rows))
 
@@ -155,12 +159,13 @@ def write_capture_tables(root: Path, K: np.ndarray, size: tuple[int, int], fps: 
     (gt / "synth.json").write_text(json.dumps(synth, indent=1) + "\n")
 
 
-def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int = 300,
+def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int | None = None,
                size: tuple[int, int] = (960, 540), seed: int = 0, *, imu_drift_deg: float = 3.0,
-               turn_deg: float = 380.0, texture: float = 1.0, blur: float = 0.0, noise: float = 0.0,
+               turn_deg: float | None = None, texture: float = 1.0, blur: float = 0.0, noise: float = 0.0,
                gt_maps: bool = True, workers: int = 2, fps: float = 30.0,
-               imu_noise_deg: float = 0.1, sway_m: float = 0.0, exposure_s: float = 0.0,
-               arm_m: float | None = None, hfov_deg: float | None = None, tremor_deg: float = 0.0) -> Path:
+               imu_noise_deg: float = 0.1, sway_m: float | None = None, exposure_s: float = 0.0,
+               arm_m: float | None = None, hfov_deg: float | None = None, tremor_deg: float = 0.0,
+               photo_dir: str | os.PathLike | None = None) -> Path:
     """Returns the path of a new synthetic spin capture of ``scene`` written to ``out_dir``.
 
     ``size`` is (width, height) px; ``seed`` seeds the spin, IMU noise, image
@@ -178,9 +183,22 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
     one optical centre (zero baseline), which cannot sway. ``hfov_deg``: the camera's horizontal field of
     view (None: fx = 0.8 width, 64 degrees). ``tremor_deg``: RMS angle of a hand's rotational tremor (2-7 Hz;
     0: none).
+    ``scene="random"``: a procedural room (:mod:`.procedural`) whose seed also draws the spin: ``n_frames``,
+    ``turn_deg``, ``sway_m``, ``arm_m`` and ``hfov_deg`` left None take its values (given: they override);
+    ``photo_dir``: equirectangular photos that room paints some surfaces with. Other scenes: None means 300
+    frames, 380 deg, no sway, the seeded arm, 64 deg.
     Raises :class:`InputError` for an existing non-empty ``out_dir`` or bad settings.
     """
     out = Path(out_dir)
+    if scene == "random":
+        from .procedural import random_spin
+
+        spec = random_spin(int(seed))
+        n_frames, turn_deg = _or(n_frames, spec.n_frames), _or(turn_deg, spec.turn_deg)
+        sway_m, arm_m, hfov_deg = _or(sway_m, spec.sway_m), _or(arm_m, spec.arm_m), _or(hfov_deg, spec.hfov_deg)
+    n_frames, turn_deg, sway_m = _or(n_frames, 300), _or(turn_deg, 380.0), _or(sway_m, 0.0)
+    if photo_dir is not None and not Path(photo_dir).is_dir():
+        raise InputError("photo folder not found", photo_dir)
     _check_args(out, scene, n_frames, size, workers, imu_drift_deg=abs(imu_drift_deg), texture=texture,
                 blur=blur, noise=noise, imu_noise_deg=imu_noise_deg, turn_deg=turn_deg, fps=fps, sway_m=sway_m,
                 exposure_s=exposure_s, tremor_deg=tremor_deg)
@@ -191,7 +209,7 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
     if arm_m == 0 and sway_m > 0:
         raise InputError("a tripod spin (arm 0) cannot sway: give --arm 0 or --sway, not both")
     n_frames, size, seed = int(n_frames), (int(size[0]), int(size[1])), int(seed)
-    sc = make_scene(scene, seed)
+    sc = make_scene(scene, seed, photo_dir)
     if hfov_deg is not None and not (np.isfinite(hfov_deg) and 10.0 <= hfov_deg <= 150.0):
         raise InputError(f"hfov_deg must be between 10 and 150 degrees, got {hfov_deg}")
     K = intrinsics(size) if hfov_deg is None else intrinsics(size, 0.5 / np.tan(np.radians(hfov_deg) / 2.0))
@@ -207,7 +225,8 @@ def synthesize(out_dir: str | os.PathLike, scene: str = "living", n_frames: int 
                         **({"exposure_s": exposure_s} if exposure_s > 0 else {}),
                         **({"arm_m": float(arm_m)} if arm_m is not None else {}),
                         **({"hfov_deg": float(hfov_deg)} if hfov_deg is not None else {}),
-                        **({"tremor_deg": float(tremor_deg)} if tremor_deg > 0 else {}))
+                        **({"tremor_deg": float(tremor_deg)} if tremor_deg > 0 else {}),
+                        **({"photo_dir": str(Path(photo_dir).resolve())} if photo_dir is not None else {}))
         lines, labels = sc.edges()
         write_capture_tables(tmp, K, size, fps, ts, t_imu, R_imu, R_wc, centers,
                              {"generator": "panosfm_graph.synth", **settings}, lines, labels, sc.to_json())
