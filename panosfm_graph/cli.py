@@ -61,6 +61,9 @@ def _add_config_flags(p: argparse.ArgumentParser) -> None:
                    help="how the capture was spun: hand-held (the stand point wanders), steady (the stand point "
                         "stays put: frames between two fixed ones are placed on the circle) or auto (default: "
                         "hand-held, then steady where the camera centres lie on one circle)")
+    g.add_argument("--refine-focal", action="store_true", default=None,
+                   help="let the bundle adjustment refine a focal length camera.json gives (default: kept as given; "
+                        "an estimated one is always refined where the lines determine it)")
     g.add_argument("--strict", action="store_true", default=None,
                    help="output only the frames an independent solution confirms (the lines' own or the point "
                         "tracks' own places it within 5 %% of the spin's diameter) and no doubtful frame; the lines' "
@@ -153,6 +156,7 @@ def config_from_args(args: argparse.Namespace, base: Config | None = None) -> Co
     put("graph", "incremental_batch", getattr(args, "incremental", None))
     put("focal", "estimate", getattr(args, "estimate_focal", None))
     put("verify", "strict", True if getattr(args, "strict", None) else None)
+    put("graph", "refine_given_focal", True if getattr(args, "refine_focal", None) else None)
     for item in getattr(args, "set", []) or []:
         if "=" not in item or "." not in item.split("=", 1)[0]:
             raise InputError(f"--set {item!r}: expected SECTION.FIELD=VALUE")

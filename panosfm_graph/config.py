@@ -361,6 +361,9 @@ class GraphConfig:
     scale_line_gauge: bool = True
     support_weighting: bool = True  # relation sigma / sqrt(frames the relation was detected in)
     phases: tuple[int, ...] = (1, 2, 3)  # 1: lines+translations, 2: +rotations, 3: +intrinsics
+    # phase 3 refines a focal length camera.json gives as well (False: only an estimated one; panosfm run
+    # --refine-focal); see docs/decisions.md#a-given-focal-length-kept
+    refine_given_focal: bool = False
     max_iterations: int = 30  # Levenberg-Marquardt iterations per solve
     # option: coplanarities checked against a first solve without them (False: off, worse on kept-back offices); see
     # docs/decisions.md#relation-check
@@ -398,6 +401,11 @@ class GraphConfig:
     # from the points', the points' poses are kept and the lines triangulated again at them (0: off); see
     # docs/decisions.md#lines-or-points
     motion_lines_points_max_rel: float = 0.01
+    # ... unless the point tracks fit the line-fixed frames' poses within this ratio (or this many px more) of their fit
+    # to their own placement on those frames: then the lines' poses are kept (0: off); see
+    # docs/decisions.md#lines-checked-by-the-points
+    motion_lines_points_fit_ratio: float = 1.5
+    motion_lines_points_fit_slack_px: float = 0.3
     # ... and where they agree, the spin placed again anchored by the line-fixed frames (False: the points' own
     # placement, moved onto the line-fixed frames, wherever it places every frame: a streamed preview's, see
     # graph.incremental_anchored); see docs/decisions.md#lighter-previews
@@ -461,25 +469,41 @@ class VerifyConfig:
     (tools/calibrate_sigma.py, docs/decisions.md#honest-sigma)."""
 
     enabled: bool = True
-    # a frame's std: the geometric mean of its evidences, each scaled to a median predictor of its error (the
-    # motion model's marginal times model_ratio; the distance to the nearest independent solution, its median
-    # over evidence_window of the frames about it or its own where larger, times gap_ratio), times sigma_scale
-    model_ratio: float = 1.54
-    gap_ratio: float = 0.93
-    other_ratio: float = 0.7  # ... the distance to the solution independent of the frame's own source (lines/points)
+    # a frame's std (graph.reliability.combine_evidence): each evidence scaled to a median predictor of its error
+    # (the motion model's marginal times model_ratio; the distance to the nearest independent solution, the larger of
+    # its own and its median over evidence_window of the frames about it, times gap_ratio; the distance to the one
+    # independent of the frame's own source times other_ratio), the first two's geometric mean, never under the third,
+    # times a scale per source so that 3 stds cover 96 % of that source's frames' errors on 50 procedural rooms
+    model_ratio: float = 1.032
+    gap_ratio: float = 0.748
+    other_ratio: float = 0.598
     evidence_window: float = 0.05
-    sigma_scale: float = 1.19  # 3 stds cover 95 % of the frames' errors on the procedural rooms
+    lines_scale: float = 1.353  # ... the line-fixed frames'
+    points_scale: float = 1.022  # ... the frames the point tracks placed
+    motion_scale: float = 1.817  # ... the motion model's and the steady circle's
     floor_sigma_rel: float = 0.002  # every frame's std is at least this
     fallback_sigma_rel: float = 0.01  # a frame without any evidence
     points_check: bool = True  # place the spin by the point tracks alone where the pipeline did not, to compare
     flag_sigma_rel: float = 0.05 / 3  # a frame whose std exceeds this is doubtful (3 stds within an accurate 5 %)
     max_sigma_rel: float = 0.10  # ... beyond this it is left out
+    # where doubtful frames are at most this share of a run's frames and nothing else casts doubt on it, they are left
+    # out and the run is trusted (a trusted run vouches for every frame it outputs); more: kept, flagged, run doubtful
+    max_doubtful_share: float = 0.1
     max_rotation_gap_deg: float = 1.0  # a rotation this far from every other estimate of it is doubtful
-    max_lines_points_rel: float = 0.03  # the lines' and the points' solutions this far apart: the run is doubtful
+    max_lines_points_rel: float = 0.03  # the lines' and the points' solutions this far apart: the run is doubtful,
+    # unless the point tracks refute the lines' solution (their residual at its poses over refute_ratio times theirs
+    # at their own and refute_slack_px more: graph.motion_model.lines_fit_points); then it contradicts no frame
+    refute_ratio: float = 1.5
+    refute_slack_px: float = 0.3
     # a frame whose rotation relative to its neighbours (within imu_window_frames) departs from the IMU's by more than
     # this is doubtful: the IMU drifts over the spin, not over a few frames
     max_imu_gap_deg: float = 1.0
     imu_window_frames: int = 5
+    # a focal length camera.json gives is checked against the vanishing points' (lines.focal, 0.2-1.4 s): where they
+    # fix it (sharpness at least focal_min_sharpness) and it lies more than max_focal_gap off, the run is doubtful
+    focal_check: bool = True
+    focal_min_sharpness: float = 1.1
+    max_focal_gap: float = 0.05
     # --strict: keep only frames that an independent solution confirms (within 3 of their stds)
     strict: bool = False
 

@@ -25,7 +25,7 @@ import numpy as np
 
 from . import __version__
 from .cache import StageCache, stable_hash, stage_code_hash
-from .config import Config
+from .config import Config, with_overrides
 from .data import (Capture, NormalMaps, PointTracks, Preprocessed, Relations, Segments, Solution,
                    Thumbnails, Tracks)
 from .errors import InputError
@@ -56,6 +56,7 @@ class RunResult:
     thumbnails: Thumbnails | None = None
     focal: Any = None  # lines.focal.FocalEstimate where the focal length was estimated
     focal_stitched: Any = None  # points.stitch.StitchedFocal where the point tracks were fitted for it
+    focal_check: dict | None = None  # a given focal length against the vanishing points' (graph.reliability)
 
     def report(self) -> str:
         """Returns a short human-readable account of the run."""
@@ -254,6 +255,8 @@ def _stages(capture: Capture, config: Config, cache: StageCache, result: RunResu
         result.thumbnails = cache.load("thumbnails", key, Thumbnails)
     if not done("detect") and (not capture.focal_given or config.focal.estimate):
         capture = _estimate_focal(capture, segments, config, timings, result)
+    elif not done("detect") and config.verify.enabled and config.verify.focal_check:
+        result.focal_check = _check_focal(capture, segments, config, timings)
     if not done("detect"):
         key = stable_hash(key, code("preprocess"), config.manhattan, config.rotation, capture.camera.params,
                           config.points.enabled, config.graph.motion_model)  # vertical edges only: points or stop
@@ -361,6 +364,30 @@ def _estimate_focal(capture: Capture, segments: Segments, config: Config, timing
     return capture
 
 
+def _check_focal(capture: Capture, segments: Segments, config: Config, timings: dict[str, float]) -> dict | None:
+    """Returns the given focal length checked against the Manhattan vanishing points' (``lines/focal.py``;
+    graph.reliability): {"given_px", "estimated_px", "sharpness", "off", "agrees"}; None where the lines cannot
+    say (too few)."""
+    from .errors import TooFewLinesError
+    from .lines.focal import estimate_focal
+
+    with stage("focal", timings):
+        try:
+            est = estimate_focal(segments, capture.R_wc_imu, capture.camera, config.focal, config.manhattan)
+        except TooFewLinesError:
+            return None
+    given = float(capture.camera.K[0, 0])
+    off = given / est.focal_px - 1.0
+    sharp = bool(est.sharpness >= config.verify.focal_min_sharpness)
+    check = {"given_px": given, "estimated_px": float(est.focal_px), "sharpness": float(est.sharpness),
+             "off": float(off), "agrees": bool(not sharp or abs(off) <= config.verify.max_focal_gap)}
+    if not check["agrees"]:
+        log.warning("camera.json's focal length %.1f px is %.0f %% from what the vanishing points say (%.1f px): a "
+                    "wrong focal length bends every line; the result is marked doubtful (--estimate-focal uses "
+                    "theirs)", given, 100 * abs(off), est.focal_px)
+    return check
+
+
 def _preprocess(capture: Capture, segments: Segments, config: Config) -> Preprocessed:
     from .errors import TooFewLinesError
     from .lines import refine_manhattan_and_rotations
@@ -412,11 +439,16 @@ def _bundle_adjust(pre: Preprocessed, result: RunResult, config: Config,
     result checked against the lines' and the points' own solutions (``verify``: graph.reliability)."""
     from .graph import verify_solution
 
+    cap = result.capture
+    if cap is not None and cap.focal_given and not config.graph.refine_given_focal and 3 in config.graph.phases:
+        # a focal length camera.json gives is an input: kept (phase 3 would move it; issue 64: a real cut's heading
+        # ramped 4.5 deg each way when the BA moved a given 376.7 px to 386.4 px)
+        config = with_overrides(config, graph={"phases": tuple(p for p in config.graph.phases if p != 3)})
     evidence: list = []
     sol = _adjust(pre, result, config, on_batch, points, evidence if verify else None)
     if not verify or (result.linear.residuals.get("zero_baseline") or {}).get("detected"):
         return sol
-    return verify_solution(pre, sol, config.verify, evidence=evidence)
+    return verify_solution(pre, sol, config.verify, evidence=evidence, points=result.points)
 
 
 def _adjust(pre: Preprocessed, result: RunResult, config: Config, on_batch: Callable[[int, Solution], None] | None,
@@ -494,7 +526,8 @@ def _adjust(pre: Preprocessed, result: RunResult, config: Config, on_batch: Call
         free = place_by_points_alone(pre, result.tracks, hand, config.graph, result.points, config.points)
         rms = circle_rms_arm(free, pre.manhattan.directions, config.graph) if free is not None else None
         if rms is not None and rms > config.graph.steady_max_rms_arm and points_replace_lines(hand, free,
-                                                                                               config.graph):
+                                                                                               config.graph,
+                                                                                               result.points):
             log.info("auto spin style: the point tracks place every frame %.1f %% of the arm off one circle: "
                      "hand-held, the steady solve not tried", 100 * rms)
             check = {"skipped": "the point tracks place every frame, off one circle", "points_rms_arm": rms,

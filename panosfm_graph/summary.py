@@ -120,7 +120,9 @@ def build_summary(capture: Capture, segments: Segments, result: RunResult, confi
                    # centre", null: none) and, for frames the motion model placed or tried, its centre's largest std
                    # over the spin's diameter
                    **_frame_sources(sol, n, bool(((result.linear.residuals if result.linear is not None else {})
-                                                   .get("zero_baseline") or {}).get("detected")))},
+                                                   .get("zero_baseline") or {}).get("detected")),
+                                    run_doubt=(focal_reason(result.focal_check) if result.focal_check is not None
+                                               and not result.focal_check["agrees"] else None))},
         "segments": {"total": segments.n,
                      "manhattan": int(np.sum(pre.labels >= 0)) if pre is not None else 0},
         "tracks": result.tracks.n if result.tracks is not None else 0,
@@ -138,7 +140,7 @@ def build_summary(capture: Capture, segments: Segments, result: RunResult, confi
         "zero_baseline": (result.linear.residuals.get("zero_baseline") if result.linear is not None else None),
         "spin_style": (sol.residuals.get("spin_style") if sol is not None and sol is not result.linear else None),
         # the run checked against its independent solutions (graph.reliability): "trusted", or "doubtful" and why
-        "verdict": verdict(sol),
+        "verdict": verdict(sol, result.focal_check),
         "residuals": {"linear": linear_res,
                       "bundle_adjust": ({k: v for k, v in sol.residuals.items()
                                          if k not in ("linear_steady", "frame_source", "frame_sigma_rel",
@@ -164,9 +166,11 @@ def build_summary(capture: Capture, segments: Segments, result: RunResult, confi
     return summary
 
 
-def _frame_sources(sol: Solution | None, n: int, zero_baseline: bool = False) -> dict[str, Any]:
+def _frame_sources(sol: Solution | None, n: int, zero_baseline: bool = False, run_doubt: str | None = None
+                   ) -> dict[str, Any]:
     """Returns summary.json's per-frame sources and motion-model stds, and the count per source ("shared centre":
-    a zero-baseline spin's frames, every one at the one centre)."""
+    a zero-baseline spin's frames, every one at the one centre); ``run_doubt``: a reason that makes every registered
+    frame doubtful (a focal length the vanishing points contradict)."""
     if sol is None:
         return {"by_source": {}, "source": [None] * n, "sigma_rel": [None] * n}
     fixed = "shared centre" if zero_baseline else "lines"
@@ -182,16 +186,31 @@ def _frame_sources(sol: Solution | None, n: int, zero_baseline: bool = False) ->
         out["evidence_gap_rel"] = [r5(v) for v in sol.residuals.get("frame_other_gap_rel") or [None] * n]
         out["nearest_gap_rel"] = [r5(v) for v in sol.residuals.get("frame_gap_rel") or [None] * n]
         out["model_sigma_rel"] = [r5(v) for v in sol.residuals.get("frame_model_sigma_rel") or [None] * n]
+    if run_doubt is not None:
+        why = out.get("doubtful_why") or [None] * n
+        out["doubtful"] = [bool(r) for r in sol.registered]
+        out["doubtful_why"] = [(f"{w}; {run_doubt}" if w else run_doubt) if r else w for w, r in zip(why, sol.registered)]
+        out["doubtful_count"] = int(sum(out["doubtful"]))
     return out
 
 
-def verdict(sol: Solution | None) -> dict:
-    """Returns summary.json's ``verdict``: {"status": "trusted" | "doubtful" | "unchecked", "reasons": [...]}
-    (graph.reliability; "unchecked" where the run was not verified: no solution, a zero-baseline spin)."""
+def verdict(sol: Solution | None, focal_check: dict | None = None) -> dict:
+    """Returns summary.json's ``verdict``: {"status": "trusted" | "doubtful" | "unchecked", "reasons": [...]}: the
+    reliability check's (graph.reliability), doubtful also where camera.json's focal length disagrees with the
+    vanishing points' (``focal_check``); "unchecked" where there is no solution or nothing checked it."""
     v = (sol.residuals or {}).get("verify") if sol is not None else None
-    if not v:
+    reasons = list(v["reasons"]) if v else []
+    if focal_check is not None and not focal_check["agrees"]:
+        reasons.insert(0, focal_reason(focal_check))
+    if not v and not reasons:
         return {"status": "unchecked", "reasons": []}
-    return {"status": v["verdict"], "reasons": list(v["reasons"])}
+    return {"status": "doubtful" if reasons else "trusted", "reasons": reasons}
+
+
+def focal_reason(check: dict) -> str:
+    """Returns the verdict's reason for a given focal length the vanishing points contradict."""
+    return (f"camera.json's focal length {check['given_px']:.1f} px is {100 * abs(check['off']):.0f} % from the "
+            f"vanishing points' {check['estimated_px']:.1f} px")
 
 
 def _focal_summary(capture: Capture, result: RunResult, sol: Solution | None) -> dict[str, Any]:

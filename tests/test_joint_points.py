@@ -76,12 +76,13 @@ def test_lines_that_would_fit_worse_keep_the_solution(lines_only, monkeypatch):
     res, cfg = lines_only
     sol = res.solution
     points = track_points(res.capture, res.preprocessed.R_wc, cfg.points)
-    monkeypatch.setattr(jp, "MIN_LINE_RMS_SLACK_PX", 0.0)
-    strict = dataclasses.replace(cfg.graph, points_joint_max_line_rms_ratio=1.0)  # no growth at all allowed
+    # the lines must end 0.1 px better: more than the joint solve gives them (measured 0.56 -> 0.55 px)
+    monkeypatch.setattr(jp, "MIN_LINE_RMS_SLACK_PX", -0.1)
+    strict = dataclasses.replace(cfg.graph, points_joint_max_line_rms_ratio=0.5)
     out = jp.adjust_with_points(res.preprocessed, res.tracks, res.relations, sol, points, strict, cfg.points)
     rec = out.residuals["points_in_ba"]
-    assert not rec["kept"] and rec["line_rms_px"][1] > rec["line_rms_px"][0], rec
-    assert np.array_equal(out.centers, sol.centers, equal_nan=True) and np.array_equal(out.R_wc, sol.R_wc)
+    assert not rec["kept"] and rec["line_rms_px"][1] > rec["line_rms_px"][0] - 0.1, rec
+    assert np.array_equal(out.centers, sol.centers, equal_nan=True) and np.array_equal(out.R_wc, sol.R_wc, equal_nan=True)
 
 
 def test_every_point_observation_joins(lines_only):

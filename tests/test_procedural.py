@@ -122,16 +122,8 @@ def test_l_shaped_room_edges_are_its_creases():
 
 
 def _box_edges(lo, hi):
-    """Returns the 12 edges (room frame) and labels of the box lo..hi."""
-    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    lines, labels = [], []
-    for a in range(3):
-        b, c = [k for k in range(3) if k != a]
-        for vb in (lo[b], hi[b]):
-            for vc in (lo[c], hi[c]):
-                p, q = lo.copy(), hi.copy()
-                p[b] = q[b] = vb
-                p[c] = q[c] = vc
-                lines.append(np.concatenate([p, q]))
-                labels.append(a)
-    return np.array(lines), np.array(labels, np.int8)
+    """Returns the 12 edges (room frame) and labels of the box lo..hi (Scene.edges of a room holding it alone)."""
+    b = _Builder((6.0, 4.0, 2.5))
+    b.box("t", "furniture", lo, hi, (0.5, 0.5, 0.5))
+    L, lab = b.build("t", 0, 0.0, [(0.8, 0.8, 0.8)] * 6, (3.0, 3.0)).edges(frame="room")
+    return L[1::2], lab[1::2]  # shell and box alternate (1 + B rows per edge of a box)

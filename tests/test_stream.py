@@ -37,7 +37,7 @@ def one_shot(spin, tmp_path_factory) -> dict[str, float]:
 
     out = tmp_path_factory.mktemp("one")
     res = run_pipeline(spin, out, Config(), rerun=False, views=False)
-    assert res.solution.registered.all()
+    assert res.solution.registered.mean() >= 0.95  # a few doubtful frames may be left out (graph.reliability)
     return _metrics(spin, out)
 
 
@@ -58,8 +58,9 @@ def test_streamed_run_grows_and_ends_near_the_one_shot_run(spin, one_shot, tmp_p
     assert [len(sol.registered) for _, sol in seen] == [40, 80, 120]
     regs = [sol.registered for _, sol in seen]
     counts = [int(x.sum()) for x in regs]
-    assert counts[0] > 0 and counts == sorted(counts) and counts[-1] == 120
-    for a, b in zip(regs, regs[1:]):
+    # the final solve may leave a few doubtful frames out (graph.reliability); the previews only grow
+    assert counts[0] > 0 and counts[:-1] == sorted(counts[:-1]) and counts[-1] >= 114
+    for a, b in zip(regs[:-1], regs[1:-1]):
         assert np.all(b[:len(a)] | ~a)  # a frame once registered stays registered
     assert streamed.solution.residuals["points_in_ba"]["kept"]
     assert all("points_in_ba" not in sol.residuals for _, sol in seen[:-1])  # previews: no joint solve

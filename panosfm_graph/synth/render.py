@@ -164,23 +164,30 @@ def shade(scene: Scene, hits: dict[str, np.ndarray], texture: float = 1.0, textu
     L = scene.light_dir.astype(np.float32)
     lam = AMBIENT + DIFFUSE * (nsign * L[axis])  # wrap-around Lambert: distinct per orientation
     if texture > 0:
-        n_tile = TEXTURE_TILE_PX
-        rng = np.random.default_rng([int(texture_seed), 5])
-        offs = rng.uniform(0, n_tile, (len(colors), 2)).astype(np.float32)
-        scale = np.float32(n_tile / TEXTURE_TILE_M)
-        mx = np.mod(hits["plane_uv"][0] * scale + offs[surface, 0], np.float32(n_tile))
-        my = np.mod(hits["plane_uv"][1] * scale + offs[surface, 1], np.float32(n_tile))
-        # anti-aliasing: texels per pixel ~ depth / (fx * |cos incidence|); tent-blend neighbouring mip levels
-        cos_inc = np.maximum(np.abs(hits["normal_cam"][..., 2]), np.float32(0.2))
-        footprint = hits["depth"] * (scale / np.float32(hits["focal_px"])) / cos_inc
-        lev = np.clip(np.log2(np.maximum(footprint, np.float32(1e-6))), 0, MIP_LEVELS - 1)
-        mips = texture_mips(int(texture_seed))
-        tex = np.zeros_like(lev)
-        for lv in range(int(np.floor(lev.min())), int(np.ceil(lev.max())) + 1):
-            wgt = np.maximum(np.float32(1.0) - np.abs(lev - np.float32(lv)), np.float32(0.0))
-            tex += wgt * cv2.remap(mips[lv], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        tex = _noise(hits, len(colors), np.float32(TEXTURE_TILE_PX / TEXTURE_TILE_M), texture_seed)
         lam = lam * (1.0 + np.float32(TEXTURE_CONTRAST * texture) * tex)
     return colors[surface] * lam[..., None]
+
+
+def _noise(hits: dict[str, np.ndarray], n_surfaces: int, scale, texture_seed: int) -> np.ndarray:
+    """Returns (H, W) float32 the periodic noise tile at the hits' plane coordinates times ``scale`` (texels per
+    metre: one number, or one per pixel), each surface's tile shifted by a seeded offset; anti-aliased: texels per
+    pixel ~ depth / (fx |cos incidence|), neighbouring mip levels tent-blended."""
+    surface = hits["surface"]
+    n_tile = TEXTURE_TILE_PX
+    rng = np.random.default_rng([int(texture_seed), 5])
+    offs = rng.uniform(0, n_tile, (n_surfaces, 2)).astype(np.float32)
+    mx = np.mod(hits["plane_uv"][0] * scale + offs[surface, 0], np.float32(n_tile))
+    my = np.mod(hits["plane_uv"][1] * scale + offs[surface, 1], np.float32(n_tile))
+    cos_inc = np.maximum(np.abs(hits["normal_cam"][..., 2]), np.float32(0.2))
+    footprint = hits["depth"] * (scale / np.float32(hits["focal_px"])) / cos_inc
+    lev = np.clip(np.log2(np.maximum(footprint, np.float32(1e-6))), 0, MIP_LEVELS - 1)
+    mips = texture_mips(int(texture_seed))
+    tex = np.zeros_like(lev)
+    for lv in range(int(np.floor(lev.min())), int(np.ceil(lev.max())) + 1):
+        wgt = np.maximum(np.float32(1.0) - np.abs(lev - np.float32(lv)), np.float32(0.0))
+        tex += wgt * cv2.remap(mips[lv], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    return tex
 
 
 def _shade_surfaces(scene: Scene, hits: dict[str, np.ndarray], texture: float, texture_seed: int) -> np.ndarray:
@@ -194,20 +201,8 @@ def _shade_surfaces(scene: Scene, hits: dict[str, np.ndarray], texture: float, t
     shaded = lam
     contrast = tx.contrast.astype(np.float32) * np.float32(texture)
     if texture > 0 and np.any(contrast > 0):
-        n_tile = TEXTURE_TILE_PX
-        rng = np.random.default_rng([int(texture_seed), 5])
-        offs = rng.uniform(0, n_tile, (len(colors), 2)).astype(np.float32)
-        scale = (np.float32(n_tile) / tx.tile_m.astype(np.float32))[surface]
-        mx = np.mod(hits["plane_uv"][0] * scale + offs[surface, 0], np.float32(n_tile))
-        my = np.mod(hits["plane_uv"][1] * scale + offs[surface, 1], np.float32(n_tile))
-        cos_inc = np.maximum(np.abs(hits["normal_cam"][..., 2]), np.float32(0.2))
-        footprint = hits["depth"] * (scale / np.float32(hits["focal_px"])) / cos_inc
-        lev = np.clip(np.log2(np.maximum(footprint, np.float32(1e-6))), 0, MIP_LEVELS - 1)
-        mips = texture_mips(int(texture_seed))
-        tex = np.zeros_like(lev)
-        for lv in range(int(np.floor(lev.min())), int(np.ceil(lev.max())) + 1):
-            wgt = np.maximum(np.float32(1.0) - np.abs(lev - np.float32(lv)), np.float32(0.0))
-            tex += wgt * cv2.remap(mips[lv], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        tex = _noise(hits, len(colors), (np.float32(TEXTURE_TILE_PX) / tx.tile_m.astype(np.float32))[surface],
+                     texture_seed)
         shaded = lam * (1.0 + contrast[surface] * tex)
     img = colors[surface] * shaded[..., None]
     if len(tx.photos):
