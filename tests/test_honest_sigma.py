@@ -125,6 +125,7 @@ def test_a_wrong_focal_length_is_called_doubtful_and_no_frame_is_confidently_wro
     (cap / "camera.json").write_text(json.dumps(cam))
     assert main(["run", str(cap), str(tmp_path / "out"), "--no-rerun"]) == 0
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["focal"]["focal_px"] == pytest.approx(cam["params"][0])  # a given focal length is kept
     assert summary["verdict"]["status"] == "doubtful"
     assert any("focal length" in r for r in summary["verdict"]["reasons"])
     m = evaluate_reconstruction(cap, tmp_path / "out")
