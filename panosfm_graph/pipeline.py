@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import logging
+import re
 import shutil
 import threading
 import time
@@ -72,7 +73,7 @@ class RunResult:
                    if any(by.get(k) for k in names) else "")
             lines.append(f"  frames      {fr.get('registered', 0)}/{fr.get('total', 0)} registered "
                          f"({100.0 * fr.get('registered_ratio', 0.0):.1f} %){how}")
-            for why, count in sorted(fr.get("unregistered_reasons", {}).items(), key=lambda kv: -kv[1]):
+            for why, count in _grouped_reasons(fr.get("unregistered_reasons", {})):
                 lines.append(f"              {count} not: {why}")
             mm = ((s.get("residuals") or {}).get("bundle_adjust") or {}).get("motion_model") or {}
             v = s.get("verdict") or {}
@@ -147,6 +148,25 @@ class RunResult:
         if s.get("peak_memory_mb"):
             lines.append(f"  peak memory {s['peak_memory_mb']:.0f} MB")
         return "\n".join(lines)
+
+
+def _grouped_reasons(reasons: dict[str, int]) -> list[tuple[int, str]]:
+    """Returns (count, reason) by count: reasons that differ only in their figures (the reliability check's stds)
+    counted as one, their figures' range given as 'a-b'."""
+    groups: dict[str, list] = {}
+    for why, count in reasons.items():
+        key = re.sub(r"\d+(\.\d+)?", "#", why)
+        g = groups.setdefault(key, [0, why, []])
+        g[0] += count
+        g[2].append([float(x) for x in re.findall(r"\d+(?:\.\d+)?", why)])
+    out = []
+    for key, (count, first, figures) in groups.items():
+        if len(figures) > 1 and len({len(f) for f in figures}) == 1:
+            cols = list(zip(*figures))
+            parts = iter(f"{min(c):g}" if min(c) == max(c) else f"{min(c):g}-{max(c):g}" for c in cols)
+            first = re.sub(r"\d+(\.\d+)?", lambda _: next(parts), key.replace("#", "0"))
+        out.append((count, first))
+    return sorted(out, key=lambda cw: -cw[0])
 
 
 def capture_identity(capture: Capture) -> str:
