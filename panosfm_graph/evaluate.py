@@ -35,7 +35,7 @@ from scipy.spatial.distance import pdist
 from .data import Camera, Capture
 from .errors import InputError
 from .export import poses_for_frames, read_colmap_text, read_lines_ply
-from .geometry import rotation_angle_deg, umeyama  # noqa: F401  (re-exported: part of the evaluation API)
+from .geometry import rotation_alignment, rotation_angle_deg, umeyama  # noqa: F401  (re-exported: evaluation API)
 from .geometry import triangulate_dlt
 
 log = logging.getLogger(__name__)
@@ -50,13 +50,6 @@ ZERO_BASELINE_M = 1e-6  # true centres closer than this: a zero-baseline capture
 # --------------------------------------------------------------------------------------
 # Alignment
 # --------------------------------------------------------------------------------------
-
-
-def rotation_alignment(R_est: np.ndarray, R_gt: np.ndarray) -> np.ndarray:
-    """Returns the rotation A minimising sum ||A R_est_i - R_gt_i||_F (chordal mean of R_gt R_est^T)."""
-    M = np.einsum("nij,nkj->ik", R_gt, R_est)
-    U, _, Vt = np.linalg.svd(M)
-    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0]) @ Vt
 
 
 def similarity_alignment(c_est: np.ndarray, c_gt: np.ndarray, R_est: np.ndarray, R_gt: np.ndarray) -> dict:

@@ -146,6 +146,13 @@ def rotation_homography(K: np.ndarray, R_wc_i: np.ndarray, R_wc_j: np.ndarray) -
     return K @ R_wc_j.T @ R_wc_i @ np.linalg.inv(K)
 
 
+def rotation_alignment(R_est: np.ndarray, R_gt: np.ndarray) -> np.ndarray:
+    """Returns the rotation A minimising sum ||A R_est_i - R_gt_i||_F (chordal mean of R_gt R_est^T)."""
+    M = np.einsum("nij,nkj->ik", R_gt, R_est)
+    U, _, Vt = np.linalg.svd(M)
+    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0]) @ Vt
+
+
 def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
     """Returns (s, R, t) minimising sum ||dst - (s R src + t)||^2 (Umeyama 1991), for (N, 3) point sets."""
     src = np.asarray(src, dtype=np.float64)

@@ -180,6 +180,15 @@ def point_fit_px(R_wc: np.ndarray, centers: np.ndarray, frames: np.ndarray, poin
     return float(np.median(np.where(depth > 0, np.linalg.norm(proj - uv, axis=1), 50.0)))
 
 
+def pose_fits_px(R_a: np.ndarray, c_a: np.ndarray, R_b: np.ndarray, c_b: np.ndarray, common: np.ndarray,
+                 points: PointTracks, K: np.ndarray) -> tuple[float, float]:
+    """Returns the point tracks' median px residual (:func:`point_fit_px`) at two solutions' poses on the frames
+    both place (``common``, (F,) bool)."""
+    frames = np.flatnonzero(common)
+    return (point_fit_px(R_a, np.where(common[:, None], c_a, 0.0), frames, points, K),
+            point_fit_px(R_b, np.where(common[:, None], c_b, 0.0), frames, points, K))
+
+
 def lines_fit_points(sol: Solution, free: Solution, points: PointTracks, config: GraphConfig
                      ) -> tuple[bool, float, float]:
     """Returns (whether the line-fixed frames' poses fit the point tracks about as well as the points' own
@@ -191,10 +200,8 @@ def lines_fit_points(sol: Solution, free: Solution, points: PointTracks, config:
     the better one. Measured on 19 procedural rooms whose lines and points were both placed: the rule kept the
     better of the two in 15 and in every case where they differed by more than 1 % of the diameter
     (docs/decisions.md#lines-checked-by-the-points)."""
-    fixed = np.flatnonzero(sol.registered & free.registered)
-    K = sol.camera.K
-    r_lines = point_fit_px(sol.R_wc, np.where(sol.registered[:, None], sol.centers, 0.0), fixed, points, K)
-    r_points = point_fit_px(free.R_wc, np.where(free.registered[:, None], free.centers, 0.0), fixed, points, K)
+    r_lines, r_points = pose_fits_px(sol.R_wc, sol.centers, free.R_wc, free.centers, sol.registered & free.registered,
+                                     points, sol.camera.K)
     if not (np.isfinite(r_lines) and np.isfinite(r_points)):
         return False, r_lines, r_points
     ok = r_lines <= max(config.motion_lines_points_fit_ratio * r_points,

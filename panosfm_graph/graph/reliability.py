@@ -42,20 +42,13 @@ from scipy.spatial.distance import pdist
 
 from ..config import VerifyConfig
 from ..data import PointTracks, Preprocessed, Solution
-from ..geometry import rotation_angle_deg
-from .motion_model import point_fit_px
+from ..geometry import rotation_alignment, rotation_angle_deg
+from .motion_model import pose_fits_px
 
 log = logging.getLogger("panosfm.graph")
 
 MIN_COMMON = 6  # frames two solutions must share to be compared
 TRUSTED, DOUBTFUL = "trusted", "doubtful"
-
-
-def chordal_rotation(R_from: np.ndarray, R_to: np.ndarray) -> np.ndarray:
-    """Returns the rotation A minimising sum ||A R_from_i - R_to_i||_F (chordal mean of R_to R_from^T)."""
-    M = np.einsum("nij,nkj->ik", R_to, R_from)
-    U, _, Vt = np.linalg.svd(M)
-    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0]) @ Vt
 
 
 def aligned_gap(c_alt: np.ndarray, R_alt: np.ndarray, c_ref: np.ndarray, R_ref: np.ndarray, common: np.ndarray,
@@ -67,7 +60,7 @@ def aligned_gap(c_alt: np.ndarray, R_alt: np.ndarray, c_ref: np.ndarray, R_ref: 
     F = len(c_ref)
     dist, ang = np.full(F, np.nan), np.full(F, np.nan)
     m = np.flatnonzero(common)
-    A = chordal_rotation(R_alt[m], R_ref[m])
+    A = rotation_alignment(R_alt[m], R_ref[m])
     xs = c_alt[m] @ A.T
     fit = np.ones(len(m), bool)
     for _ in range(3):  # a stretch where the alternative is far off does not move the rest: fitted without it
@@ -198,7 +191,7 @@ def honest_sigma(centers: np.ndarray, R_wc: np.ndarray, registered: np.ndarray, 
     if R_refined is not None:
         ok = reg & np.all(np.isfinite(R_refined), axis=(1, 2))
         if ok.sum() >= MIN_COMMON:
-            A = chordal_rotation(R_refined[ok], R_wc[ok])
+            A = rotation_alignment(R_refined[ok], R_wc[ok])
             ang = np.full(F, np.inf)
             ang[ok] = rotation_angle_deg(np.einsum("ij,njk->nik", A, R_refined[ok]), R_wc[ok])
             out["rotation_gaps"]["refined"] = float(np.median(ang[ok]))
@@ -247,11 +240,11 @@ def lines_refuted(evidence: list[Evidence], points: PointTracks | None, K: np.nd
     ev = {e.name: e for e in evidence}
     if points is None or not len(points.frame) or "lines" not in ev or "points" not in ev:
         return None
-    common = np.flatnonzero(ev["lines"].registered & ev["points"].registered)
-    if len(common) < MIN_COMMON:
+    common = ev["lines"].registered & ev["points"].registered
+    if common.sum() < MIN_COMMON:
         return None
-    r_l = point_fit_px(ev["lines"].R_wc, np.nan_to_num(ev["lines"].centers), common, points, K)
-    r_p = point_fit_px(ev["points"].R_wc, np.nan_to_num(ev["points"].centers), common, points, K)
+    r_l, r_p = pose_fits_px(ev["lines"].R_wc, ev["lines"].centers, ev["points"].R_wc, ev["points"].centers, common,
+                            points, K)
     if not (np.isfinite(r_l) and np.isfinite(r_p)):
         return None
     return bool(r_l > max(config.refute_ratio * r_p, r_p + config.refute_slack_px)), r_l, r_p
