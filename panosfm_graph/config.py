@@ -181,6 +181,12 @@ class PointsConfig:
     anchor_sigma_rel: float = 0.01  # with points the line-fixed centres are anchors within this share of the diameter
     anchor_sigma_deg: float = 0.1  # ... and their rotations within this
     relative_sigma_deg: float = 0.05  # std of the refined rotations' relative rotation between neighbouring frames
+    # each frame the points place is also held to its preprocessed (vanishing-point) rotation within this (deg; 0:
+    # off), kept where the point tracks fit that placement within vp_fit_ratio times the free one's; see
+    # docs/decisions.md#vanishing-point-rotations-in-the-placement
+    vp_sigma_deg: float = 0.2
+    vp_fit_ratio: float = 1.05
+    vp_min_horizontal: int = 2  # ... only frames with this many horizontal Manhattan segments (they fix the heading)
     reject_px: float = 1.0  # a track whose RMS residual exceeds this after a solve is dropped and the graph solved again
     reject_rounds: int = 3  # ... at most this many times
     sigma_px: float = 0.3  # std of a point observation in the motion model's graph (Huber, robust_k)

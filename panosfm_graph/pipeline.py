@@ -73,7 +73,7 @@ class RunResult:
                    if any(by.get(k) for k in names) else "")
             lines.append(f"  frames      {fr.get('registered', 0)}/{fr.get('total', 0)} registered "
                          f"({100.0 * fr.get('registered_ratio', 0.0):.1f} %){how}")
-            for why, count in _grouped_reasons(fr.get("unregistered_reasons", {})):
+            for count, why in _grouped_reasons(fr.get("unregistered_reasons", {})):
                 lines.append(f"              {count} not: {why}")
             mm = ((s.get("residuals") or {}).get("bundle_adjust") or {}).get("motion_model") or {}
             v = s.get("verdict") or {}

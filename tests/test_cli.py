@@ -103,6 +103,20 @@ def test_report_says_how_an_arbitrary_scale_was_fixed(tmp_path):
     assert scale_line(from_arm).endswith(text)  # not "no floor line verified"
 
 
+def test_report_counts_each_reason_for_unregistered_frames(tmp_path):
+    """The report lists why frames are not registered as "N not: reason", reasons differing only in their figures
+    counted once with the figures' range."""
+    from panosfm_graph.pipeline import RunResult
+
+    reasons = {"no tracked Manhattan line": 99, "left out: its std is 11.2 % of the spin's diameter": 2,
+               "left out: its std is 14.5 % of the spin's diameter": 3}
+    summary = {"frames": {"registered": 28, "total": 132, "registered_ratio": 28 / 132,
+                          "unregistered_reasons": reasons}}
+    lines = RunResult(tmp_path, summary).report().splitlines()
+    assert "99 not: no tracked Manhattan line" in [line.strip() for line in lines]
+    assert "5 not: left out: its std is 11.2-14.5 % of the spin's diameter" in [line.strip() for line in lines]
+
+
 def test_section_settings_parse_one_sections_fields():
     """The tools' ``--set FIELD=VALUE`` (one Config section): the field's type, and a one-line error otherwise."""
     from panosfm_graph.cli import section_settings

@@ -163,8 +163,8 @@ def honest_sigma(centers: np.ndarray, R_wc: np.ndarray, registered: np.ndarray, 
     doubtful = np.zeros(F, bool)
     gap = np.full(F, np.nan)
     out = {"sigma_rel": np.full(F, np.nan), "doubtful": doubtful, "why": why, "gap_rel": gap,
-           "model_rel": np.full(F, np.nan), "other_rel": np.full(F, np.nan), "gaps": {}, "rotation_gaps": {},
-           "diameter": diameter}
+           "model_rel": np.full(F, np.nan), "other_rel": np.full(F, np.nan), "imu_gap_deg": np.full(F, np.nan),
+           "gaps": {}, "rotation_gaps": {}, "diameter": diameter}
     if reg.sum() < 2 or diameter <= 0:
         return out
     src = [s or "" for s in source]
