@@ -492,9 +492,15 @@ class VerifyConfig:
     points_check: bool = True  # place the spin by the point tracks alone where the pipeline did not, to compare
     flag_sigma_rel: float = 0.05 / 3  # a frame whose std exceeds this is doubtful (3 stds within an accurate 5 %)
     max_sigma_rel: float = 0.10  # ... beyond this it is left out
+    # a frame this far (share of the diameter) from the nearest independent solution is doubtful whatever its std (0:
+    # off); see docs/decisions.md#a-frame-far-from-every-solution
+    max_gap_rel: float = 0.04
     # where doubtful frames are at most this share of a run's frames and nothing else casts doubt on it, they are left
     # out and the run is trusted (a trusted run vouches for every frame it outputs); more: kept, flagged, run doubtful
     max_doubtful_share: float = 0.1
+    # in a doubtful run, frames no solution independent of their own source places are doubtful too (False: only by
+    # their std); see docs/decisions.md#a-doubtful-run-vouches-only-for-checked-frames
+    doubt_unchecked: bool = True
     max_rotation_gap_deg: float = 1.0  # a rotation this far from every other estimate of it is doubtful
     max_lines_points_rel: float = 0.03  # the lines' and the points' solutions this far apart: the run is doubtful,
     # unless the point tracks refute the lines' solution (their residual at its poses over refute_ratio times theirs

@@ -59,6 +59,26 @@ def test_a_frame_the_independent_solution_contradicts_gets_a_large_std_and_a_rea
     assert np.all(out2["sigma_rel"][45:55] < sig[45:55])
 
 
+def test_a_frame_far_from_every_solution_is_doubtful_whatever_its_std():
+    """verify.max_gap_rel: the final solution bent 6 % of the diameter away from the only independent solution (its
+    own source's, the points'; the lines' missing), with a small model std: the geometric mean of the evidence
+    discounts the one large gap, the gap alone makes the frames doubtful."""
+    R, c = _spin()
+    rng = np.random.default_rng(4)
+    diam = 0.7
+    final = c.copy()
+    final[40:60] += [0.06 * diam, 0.0, 0.0]
+    points_c = c + rng.normal(0, 0.001, c.shape)
+    args = (final, R, np.ones(F, bool), np.full(F, 0.002), ["points"] * F,
+            [Evidence("points", points_c, R, np.ones(F, bool))])
+    off = honest_sigma(*args, dataclasses.replace(CFG, max_gap_rel=0.0))
+    on = honest_sigma(*args, CFG)
+    assert np.all(off["gap_rel"][45:55] > CFG.max_gap_rel)  # 6 %, less what the similarity takes up
+    assert not off["doubtful"][45:55].any()  # the std alone leaves them confident
+    assert on["doubtful"][45:55].all() and all("from every independent solution" in on["why"][i] for i in range(45, 55))
+    assert not on["doubtful"][:30].any() and not on["doubtful"][70:].any()
+
+
 def test_imu_relative_rotations_catch_a_turned_frame():
     R, c = _spin()
     R_imu = Rotation.from_euler("z", np.linspace(0, 3, F)[:, None], degrees=True).as_matrix() @ R  # a 3 deg drift: harmless
@@ -108,6 +128,29 @@ def test_verdict_strict_and_left_out_frames():
     assert not strict.registered[22:28].any() and strict.registered[:15].all()
     # every solution agrees: trusted, nothing flagged
     calm = verify_solution(_pre(R), sol, CFG, evidence=[Evidence("lines", c, R, np.ones(F, bool))])
+    assert calm.residuals["verify"]["verdict"] == "trusted" and not any(calm.residuals["frame_doubtful"])
+
+
+def test_a_doubtful_run_vouches_only_for_frames_an_independent_solution_places():
+    """verify.doubt_unchecked: the lines' own solution places frames 0-59 only (the points placed the rest) and is
+    4 % off over frames 20-39: the run is doubtful, and frames 60-119, which nothing independent of the points places,
+    are flagged with the reason; off, they are vouched for by their std alone. A run that checks out stays trusted
+    with its unchecked frames unflagged."""
+    R, c = _spin()
+    rng = np.random.default_rng(3)
+    lines_c = c + rng.normal(0, 0.001, c.shape)
+    lines_c[20:40] += [0.03, 0.0, 0.0]
+    lines_reg = np.arange(F) < 60
+    ev = [Evidence("lines", lines_c, R, lines_reg), Evidence("points", c, R, np.ones(F, bool))]
+    sol = _solution(R, c, ["points"] * F, [0.002] * F)
+    on = verify_solution(_pre(R), sol, CFG, evidence=ev)
+    off = verify_solution(_pre(R), sol, dataclasses.replace(CFG, doubt_unchecked=False), evidence=ev)
+    assert on.residuals["verify"]["verdict"] == off.residuals["verify"]["verdict"] == "doubtful"
+    flagged_on, flagged_off = (np.asarray(x.residuals["frame_doubtful"]) for x in (on, off))
+    assert not flagged_off[60:].any() and flagged_on[60:].all()
+    assert all("no solution independent" in on.residuals["frame_doubtful_why"][i] for i in range(60, F))
+    assert not flagged_on[:15].any()  # checked by the lines' solution and within it
+    calm = verify_solution(_pre(R), sol, CFG, evidence=[Evidence("lines", c, R, lines_reg)])
     assert calm.residuals["verify"]["verdict"] == "trusted" and not any(calm.residuals["frame_doubtful"])
 
 

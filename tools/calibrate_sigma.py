@@ -16,9 +16,11 @@ Reads each run's ``summary.json`` (``frames``: source, ``model_sigma_rel``, ``ne
   (pooled over the runs; ``COVER``: a margin under the 5 % the issue allows beyond 3 stds).
 
 Then prints, with those constants (or ``--use``'s): the share of frames beyond 3 stds per source, the share of
-frames whose std exceeds ``verify.flag_sigma_rel`` (doubtful), the runs that would call themselves doubtful (more
-than ``verify.max_doubtful_share`` of their frames doubtful; how many of those have every frame accurate: false
-alarms; the frames left out of the trusted ones), and the runs whose vouched-for frames are under 99 % accurate.
+frames whose std exceeds ``verify.flag_sigma_rel`` (doubtful; also those beyond ``verify.max_gap_rel`` from the
+nearest independent solution, and in a doubtful run those no independent solution places), the runs that would call
+themselves doubtful (more than ``verify.max_doubtful_share`` of their frames doubtful; how many of those have every
+frame accurate: false alarms; the frames left out of the trusted ones), and the runs whose vouched-for frames are
+under 99 % accurate.
 The lines and the points far apart (over 3 % of the diameter, the lines not refuted) make every frame of a run
 doubtful, as in the pipeline; a focal length the vanishing points contradict is not replayed here. Errors are those of ``panosfm eval``: centre over the true trajectory's diameter after the orientations'
 rotation and the centres' scale and shift.
@@ -115,10 +117,14 @@ def report(runs: list[dict], cfg) -> dict:
         s = sigma_of(r, cfg)
         a = (r["err"] <= 0.05) & (r["rot"] <= 1.0)
         flagged = s > cfg.flag_sigma_rel
+        if cfg.max_gap_rel > 0:  # far from every independent solution, whatever the std
+            flagged |= r["gap"] > cfg.max_gap_rel
         if r["run_doubt"]:  # a run-level reason (the lines and the points far apart): every frame doubtful
             flagged[:] = True
         if flagged.mean() > cfg.max_doubtful_share:  # graph.reliability's rule: kept, flagged, the run doubtful
             doubtful.append(r["name"])
+            if cfg.doubt_unchecked:  # a doubtful run vouches only for frames an independent solution places
+                flagged |= ~np.isfinite(r["other"])
             if a.all():
                 false_alarm.append(r["name"])
         else:  # a few: left out, the run trusted

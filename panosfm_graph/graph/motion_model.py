@@ -55,6 +55,7 @@ from ..geometry import triangulate_dlt, turned_degrees
 from .factor_graph import reprojection_kernel
 from .held_poses import adjust_lines_at_poses
 from .lm import levenberg_marquardt
+from .placement_rotations import add_rotations, heading_by_lines
 from .readout import lines_at_poses
 from .problem import ARM_KEY, center_key, line_key, point_key, rotation_key, stand_key
 from .spin import fit_spin
@@ -348,7 +349,7 @@ def _place(pre: Preprocessed, tracks: Tracks, sol: Solution, config: GraphConfig
     for key, X in point_init.items():
         values.insert(key, X)
     if batches:
-        _add_rotations(graph, values, fixed, todo, R, pre.R_wc, points_config)
+        add_rotations(graph, values, fixed, todo, R, pre.R_wc, points_config)
     if anchor_free:
         _add_gauge(graph, rotation_anchors, R, config.metric_arm_fallback_m, points_config)
     hold = gtsam.noiseModel.Isotropic.Sigma(3, HOLD_SIGMA)
@@ -358,7 +359,7 @@ def _place(pre: Preprocessed, tracks: Tracks, sol: Solution, config: GraphConfig
     try:
         result, batches, n_pts, dropped = _solve_rejecting_points(graph, values, batches, n_pts, points_config)
         sig = _largest_center_std(graph, batches, result, todo, diameter, gauge_free=anchor_free)
-        held = todo[_heading_by_lines(pre, F, points_config.vp_min_horizontal)[todo]]
+        held = todo[heading_by_lines(pre, F, points_config.vp_min_horizontal)[todo]]
         result, vp = _held_to_vanishing_points(graph, result, batches, np.concatenate([fixed, todo]), held, pre.R_wc,
                                                sol.camera.K, points, points_config, free_rot)
     except RuntimeError as e:  # an indeterminate system: leave the frames out rather than guess
@@ -523,21 +524,11 @@ def _solve_rejecting_points(graph, values, batches: list, n_pts: np.ndarray, con
     return result, batches, n_pts, dropped
 
 
-def _heading_by_lines(pre: Preprocessed, F: int, min_horizontal: int) -> np.ndarray:
-    """Returns (F,) whether each frame shows at least ``min_horizontal`` horizontal Manhattan segments: its vanishing
-    points fix its heading, not only the IMU's relative rotations from its neighbours."""
-    labels = getattr(pre, "labels", None)
-    if labels is None or not len(labels):
-        return np.zeros(F, bool)
-    horizontal = (labels >= 0) & (labels != 2)
-    return np.bincount(pre.segments.frame[horizontal], minlength=F)[:F] >= min_horizontal
-
-
 def _held_to_vanishing_points(graph, result: gtsam.Values, batches: list, frames: np.ndarray, todo: np.ndarray,
                               R_vp: np.ndarray, K: np.ndarray, points: PointTracks | None, config: PointsConfig,
                               free_rot: bool) -> tuple[gtsam.Values, dict | None]:
     """Returns (result, record): the placement solved again with each frame of ``todo`` (those whose lines fix
-    their heading, :func:`_heading_by_lines`) held to its preprocessed (vanishing-point, paper §3.1) rotation
+    their heading, :func:`.placement_rotations.heading_by_lines`) held to its preprocessed (vanishing-point, paper §3.1) rotation
     ``R_vp`` within ``points.vp_sigma_deg``, where the point tracks fit it (median px over ``frames``,
     :func:`point_fit_px`) within ``points.vp_fit_ratio`` times the free placement's; else the free one as it was.
 
@@ -570,25 +561,6 @@ def _held_to_vanishing_points(graph, result: gtsam.Values, batches: list, frames
     kept = bool(np.isfinite(fits).all() and fits[1] <= config.vp_fit_ratio * fits[0])
     record = {"kept": kept, "fit_px": [round(float(f), 4) for f in fits]}
     return (alt if kept else result), record
-
-
-def _add_rotations(graph, values, fixed: np.ndarray, todo: np.ndarray, R: np.ndarray, R_refined: np.ndarray,
-                   config: PointsConfig) -> None:
-    """Adds every frame's rotation as a variable: the line-fixed ones anchored (``points.anchor_sigma_deg``), each
-    frame to place tied to its neighbours by the refined rotations' relative rotation (std
-    ``points.relative_sigma_deg``)."""
-    hold = gtsam.noiseModel.Isotropic.Sigma(3, np.deg2rad(config.anchor_sigma_deg))
-    rel = gtsam.noiseModel.Isotropic.Sigma(3, np.deg2rad(config.relative_sigma_deg))
-    for i in fixed:
-        values.insert(rotation_key(int(i)), gtsam.Rot3(R[i]))
-        graph.add(gtsam.PriorFactorRot3(rotation_key(int(i)), gtsam.Rot3(R[i]), hold))
-    for i in todo:
-        values.insert(rotation_key(int(i)), gtsam.Rot3(R[i]))
-    known = np.zeros(len(R), bool)
-    known[np.concatenate([fixed, todo])] = True
-    pairs = {(a, a + 1) for i in todo for a in (i - 1, i) if a >= 0 and a + 1 < len(R) and known[a] and known[a + 1]}
-    for a, b in sorted(pairs):
-        graph.add(factors.imu_rotation_factor(rotation_key(a), rotation_key(b), R_refined[a], R_refined[b], rel))
 
 
 def _point_observations(centers: np.ndarray, points: PointTracks, frames: np.ndarray, held: np.ndarray, R: np.ndarray,

@@ -19,12 +19,16 @@ per source (``verify.lines_scale``, ``points_scale``, ``motion_scale``) so that 
 all calibrated on the procedural rooms against the truth (``tools/calibrate_sigma.py``).
 
 A frame is *doubtful* where its std exceeds ``verify.flag_sigma_rel`` (a third of the 5 % that makes a frame
-accurate), its rotation lies more than ``verify.max_rotation_gap_deg`` from every other estimate of it (the refined
+accurate), it lies more than ``verify.max_gap_rel`` from the nearest independent solution whatever its std (the
+geometric mean of the evidence discounts one large gap: two estimates that far apart leave one of them near or past
+the 5 %), its rotation lies more than ``verify.max_rotation_gap_deg`` from every other estimate of it (the refined
 and the independent solutions'), or it turns more than ``verify.max_imu_gap_deg`` off the IMU's relative rotation to
 its neighbours (:func:`imu_gap_deg`); one whose std exceeds ``verify.max_sigma_rel`` is left out. The run is
 *doubtful* where more than ``verify.max_doubtful_share`` of its frames are doubtful or the lines' and the points'
 solutions lie more than ``verify.max_lines_points_rel`` apart (the lines not refuted); otherwise *trusted*, its few
-doubtful frames left out, so that a trusted run vouches for every frame it outputs. ``verify.strict`` (``--strict``)
+doubtful frames left out, so that a trusted run vouches for every frame it outputs. A doubtful run vouches only for
+frames the solution independent of their own source places (``verify.doubt_unchecked``): the others are doubtful
+too. ``verify.strict`` (``--strict``)
 keeps only frames the independent solution confirms within 3 x ``flag_sigma_rel``. ``residuals["verify"]`` holds
 the verdict, its reasons and every check's figure; ``frame_sigma_rel`` / ``frame_doubtful`` /
 ``frame_doubtful_why`` and the evidences (``frame_gap_rel``, ``frame_other_gap_rel``, ``frame_model_sigma_rel``)
@@ -221,6 +225,10 @@ def honest_sigma(centers: np.ndarray, R_wc: np.ndarray, registered: np.ndarray, 
             else:
                 reasons.append(f"its std is {100 * sig[i]:.1f} % of the spin's diameter: nothing independent "
                                f"checks it")
+        if config.max_gap_rel > 0 and gap[i] > config.max_gap_rel:  # NaN (no evidence) compares False
+            near = min(gap_of, key=lambda k: np.nan_to_num(gap_of[k][i], nan=np.inf))
+            reasons.append(f"it lies {100 * gap[i]:.1f} % of the spin's diameter from every independent solution "
+                           f"(the nearest: the {near}')")
         if rot_checked and not rot_ok[i]:
             reasons.append(f"its rotation is over {config.max_rotation_gap_deg:g} deg from every other estimate")
         if imu[i] > config.max_imu_gap_deg:
@@ -297,6 +305,12 @@ def verify_solution(pre: Preprocessed, sol: Solution, config: VerifyConfig, *, e
     registered = sol.registered & ~left
     for i in np.flatnonzero(left):
         src[i] = None
+    if config.doubt_unchecked and (reasons or doubtful.any() or registered.sum() < 2):
+        # a doubtful run vouches only for frames a solution independent of their own source checks
+        unchecked = registered & ~doubtful & ~np.isfinite(out["other_rel"])
+        for i in np.flatnonzero(unchecked):
+            why[i] = "the run is doubtful and no solution independent of the frame's own places it"
+        doubtful |= unchecked
     if doubtful.any():
         reasons.append(f"{int(doubtful.sum())} of {int(registered.sum())} frames doubtful")
     if registered.sum() < 2:

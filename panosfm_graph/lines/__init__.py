@@ -15,7 +15,7 @@ from ..config import Config
 from ..data import UNLABELLED, Capture, ManhattanFrame, Preprocessed, Segments, Tracks
 from ..errors import OnlyVerticalEdgesError
 from .detect import detect_segments
-from .manhattan import check_enough_manhattan, gravity_aligned, label_segments, manhattan_frame, \
+from .manhattan import check_enough_manhattan, gravity_aligned, horizontal_counts, label_segments, manhattan_frame, \
     refined_manhattan_frame
 from .rotations import heading_drift, refine_rotations, rotate_heading
 from .tracking import loop_pairs, track_lines as _track_lines
@@ -106,7 +106,7 @@ def _drift_corrected(segments: Segments, labels: np.ndarray, R: np.ndarray, capt
     R_imu = np.asarray(capture.R_wc_imu, dtype=np.float64)
     horizontal = (labels >= 0) & (labels != 2)
     weight = np.bincount(segments.frame[horizontal], segments.lengths[horizontal], minlength=capture.n_frames)
-    count = np.bincount(segments.frame[horizontal], minlength=capture.n_frames)
+    count = horizontal_counts(segments, labels, capture.n_frames)
     weight[count < config.rotation.drift_min_horizontal] = 0.0  # too few to fix the frame's heading
     if config.rotation.drift_weights == "frames":  # each frame with horizontal lines counts once
         weight = (weight > 0).astype(np.float64)

@@ -225,6 +225,13 @@ def label_segments(
     return labels.astype(np.int8)
 
 
+def horizontal_counts(segments: Segments, labels: np.ndarray, n_frames: int) -> np.ndarray:
+    """Returns (n_frames,) each frame's number of horizontal Manhattan segments (labelled with axis 0 or 1): the
+    segments whose vanishing points fix the frame's heading, where vertical ones fix only its tilt."""
+    horizontal = (labels >= 0) & (labels != 2)
+    return np.bincount(segments.frame[horizontal], minlength=n_frames)[:n_frames]
+
+
 def check_enough_manhattan(labels: np.ndarray, config: Config | ManhattanConfig) -> None:
     """Raises :class:`TooFewLinesError` unless enough segments of two or more axes were labelled."""
     cfg = _manhattan_config(config)
