@@ -208,6 +208,10 @@ def honest_sigma(centers: np.ndarray, R_wc: np.ndarray, registered: np.ndarray, 
     out["sigma_rel"], out["gap_rel"], out["model_rel"], out["other_rel"] = sig, gap, model, other
     imu = imu_gap_deg(R_wc, R_imu, reg, config.imu_window_frames) if R_imu is not None else np.full(F, np.nan)
     out["imu_gap_deg"] = imu
+
+    def nearest(i: int) -> str:  # the solution whose gap is the frame's
+        return min(gap_of, key=lambda k: np.nan_to_num(gap_of[k][i], nan=np.inf))
+
     for i in np.flatnonzero(reg):
         reasons = []
         if sig[i] > config.flag_sigma_rel:
@@ -217,18 +221,16 @@ def honest_sigma(centers: np.ndarray, R_wc: np.ndarray, registered: np.ndarray, 
                                f"solution puts it {100 * other[i]:.1f} % away")
             elif np.isfinite(gap[i]) and config.gap_ratio * gap[i] >= (
                     config.model_ratio * model[i] if np.isfinite(model[i]) else 0):
-                near = min(gap_of, key=lambda k: np.nan_to_num(gap_of[k][i], nan=np.inf))
-                reasons.append(f"its std is {100 * sig[i]:.1f} % of the spin's diameter: the {near}' own solution "
-                               f"puts it {100 * gap[i]:.1f} % away")
+                reasons.append(f"its std is {100 * sig[i]:.1f} % of the spin's diameter: the {nearest(i)}' own "
+                               f"solution puts it {100 * gap[i]:.1f} % away")
             elif np.isfinite(model[i]):
                 reasons.append(f"its std is {100 * sig[i]:.1f} % of the spin's diameter ({src[i]})")
             else:
                 reasons.append(f"its std is {100 * sig[i]:.1f} % of the spin's diameter: nothing independent "
                                f"checks it")
         if config.max_gap_rel > 0 and gap[i] > config.max_gap_rel:  # NaN (no evidence) compares False
-            near = min(gap_of, key=lambda k: np.nan_to_num(gap_of[k][i], nan=np.inf))
             reasons.append(f"it lies {100 * gap[i]:.1f} % of the spin's diameter from every independent solution "
-                           f"(the nearest: the {near}')")
+                           f"(the nearest: the {nearest(i)}')")
         if rot_checked and not rot_ok[i]:
             reasons.append(f"its rotation is over {config.max_rotation_gap_deg:g} deg from every other estimate")
         if imu[i] > config.max_imu_gap_deg:

@@ -104,8 +104,7 @@ def _drift_corrected(segments: Segments, labels: np.ndarray, R: np.ndarray, capt
                      config: Config) -> np.ndarray:
     """Returns the IMU rotations with the heading drift fitted to the corrections ``R`` made removed."""
     R_imu = np.asarray(capture.R_wc_imu, dtype=np.float64)
-    horizontal = (labels >= 0) & (labels != 2)
-    weight = np.bincount(segments.frame[horizontal], segments.lengths[horizontal], minlength=capture.n_frames)
+    weight = horizontal_counts(segments, labels, capture.n_frames, segments.lengths)
     count = horizontal_counts(segments, labels, capture.n_frames)
     weight[count < config.rotation.drift_min_horizontal] = 0.0  # too few to fix the frame's heading
     if config.rotation.drift_weights == "frames":  # each frame with horizontal lines counts once

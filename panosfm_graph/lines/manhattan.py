@@ -225,11 +225,14 @@ def label_segments(
     return labels.astype(np.int8)
 
 
-def horizontal_counts(segments: Segments, labels: np.ndarray, n_frames: int) -> np.ndarray:
+def horizontal_counts(segments: Segments, labels: np.ndarray, n_frames: int,
+                      weights: np.ndarray | None = None) -> np.ndarray:
     """Returns (n_frames,) each frame's number of horizontal Manhattan segments (labelled with axis 0 or 1): the
-    segments whose vanishing points fix the frame's heading, where vertical ones fix only its tilt."""
+    segments whose vanishing points fix the frame's heading, where vertical ones fix only its tilt; with
+    ``weights`` (S,) (e.g. the segments' lengths), their sum of weights instead."""
     horizontal = (labels >= 0) & (labels != 2)
-    return np.bincount(segments.frame[horizontal], minlength=n_frames)[:n_frames]
+    w = None if weights is None else np.asarray(weights)[horizontal]
+    return np.bincount(segments.frame[horizontal], w, minlength=n_frames)[:n_frames]
 
 
 def check_enough_manhattan(labels: np.ndarray, config: Config | ManhattanConfig) -> None:
